@@ -1,0 +1,30 @@
+"""Warp kernels of splatsearch: projection, tile binning, compositing (forward and hand-written
+backward) and their host-side orchestration. The same kernels run on ``cpu`` and ``cuda``."""
+
+import warp as _wp
+
+_wp.config.quiet = True
+
+from .pipeline import (  # noqa: E402
+    TILE_SIZE,
+    Workspace,
+    bin_gaussians,
+    count_evaluations,
+    cpu_threads,
+    grid_dims,
+    project,
+    rasterize_backward,
+    rasterize_forward,
+)
+
+__all__ = [
+    "TILE_SIZE",
+    "Workspace",
+    "bin_gaussians",
+    "count_evaluations",
+    "cpu_threads",
+    "grid_dims",
+    "project",
+    "rasterize_backward",
+    "rasterize_forward",
+]

@@ -1,0 +1,158 @@
+"""Tile intersection: depth order, exact opacity-aware ellipse/tile tests, keys, tile ranges.
+
+Binning runs in depth order. Gaussians are first sorted by camera depth (stable, so ties keep
+their index order, as gsplat's (tile | depth) keys do). Intersections are then counted and written
+in that order, so a *stable* radix sort on the tile id alone (11 bits for 648x420) leaves every
+tile's list sorted front to back. This is cheaper than sorting 64-bit (tile | depth) keys and gives
+exactly the same order.
+
+A Gaussian is kept in a tile only if its alpha can reach 1/255 at one of the tile's pixel centres:
+the minimum of the quadratic form over the rectangle of pixel centres is compared with
+``ln(255 o)``. The compositing loop skips such Gaussians anyway, so the image is unchanged; the
+test only removes dead work.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .projection import ALPHA_MIN
+
+#: slack on the log-threshold of the tile test so that float rounding never drops a live Gaussian
+TILE_TEST_SLACK = wp.constant(1.0e-3)
+FAR_KEY = wp.constant(3.0e38)
+
+
+@wp.func
+def edge_min_sigma(d_fixed: float, lo: float, hi: float, c_fixed: float, c_cross: float, c_free: float) -> float:
+    """min over d_free in [lo, hi] of 0.5*(c_fixed d_fixed^2 + c_free d_free^2) + c_cross d_fixed d_free."""
+    d = wp.clamp(-c_cross * d_fixed / c_free, lo, hi)
+    return 0.5 * (c_fixed * d_fixed * d_fixed + c_free * d * d) + c_cross * d_fixed * d
+
+
+@wp.func
+def tile_hit(m: wp.vec2, cn: wp.vec3, thresh: float, x0: float, x1: float, y0: float, y1: float) -> bool:
+    """True if min of sigma(p) over p in [x0, x1] x [y0, y1] (pixel centres) is <= thresh."""
+    if m[0] >= x0 and m[0] <= x1 and m[1] >= y0 and m[1] <= y1:
+        return True
+    # sigma uses delta = mean - pixel; the conic is positive definite so the minimum over the
+    # rectangle lies on its boundary when the centre is outside.
+    s = edge_min_sigma(m[0] - x0, m[1] - y1, m[1] - y0, cn[0], cn[1], cn[2])
+    s = wp.min(s, edge_min_sigma(m[0] - x1, m[1] - y1, m[1] - y0, cn[0], cn[1], cn[2]))
+    s = wp.min(s, edge_min_sigma(m[1] - y0, m[0] - x1, m[0] - x0, cn[2], cn[1], cn[0]))
+    s = wp.min(s, edge_min_sigma(m[1] - y1, m[0] - x1, m[0] - x0, cn[2], cn[1], cn[0]))
+    return s <= thresh
+
+
+@wp.func
+def tile_box(m: wp.vec2, r: wp.vec2i, tile: int, tiles_x: int, tiles_y: int) -> wp.vec4i:
+    """Inclusive tile range (tx0, ty0, tx1, ty1) of the radius box, clamped to the image."""
+    tx0 = wp.max(0, int(wp.floor((m[0] - float(r[0])) / float(tile))))
+    ty0 = wp.max(0, int(wp.floor((m[1] - float(r[1])) / float(tile))))
+    tx1 = wp.min(tiles_x - 1, int(wp.floor((m[0] + float(r[0])) / float(tile))))
+    ty1 = wp.min(tiles_y - 1, int(wp.floor((m[1] + float(r[1])) / float(tile))))
+    return wp.vec4i(tx0, ty0, tx1, ty1)
+
+
+@wp.kernel
+def depth_keys_kernel(
+    depths: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.vec2i),
+    keys: wp.array(dtype=float),
+    vals: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    r = radii[i]
+    if r[0] > 0 or r[1] > 0:
+        keys[i] = depths[i]
+    else:
+        keys[i] = FAR_KEY
+    vals[i] = i
+
+
+@wp.func
+def pixel_rect(tx: int, ty: int, tile: int, width: int, height: int) -> wp.vec4:
+    x0 = float(tx * tile) + 0.5
+    y0 = float(ty * tile) + 0.5
+    x1 = float(wp.min(tx * tile + tile, width) - 1) + 0.5
+    y1 = float(wp.min(ty * tile + tile, height) - 1) + 0.5
+    return wp.vec4(x0, x1, y0, y1)
+
+
+@wp.kernel
+def count_tiles_kernel(
+    order: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.vec2i),
+    tile: int,
+    tiles_x: int,
+    tiles_y: int,
+    width: int,
+    height: int,
+    counts: wp.array(dtype=wp.int32),
+):
+    j = wp.tid()
+    g = order[j]
+    r = radii[g]
+    n = int(0)
+    if r[0] > 0 or r[1] > 0:
+        m = means2d[g]
+        cn = conics[g]
+        thresh = wp.log(opacities[g] / ALPHA_MIN) + TILE_TEST_SLACK
+        b = tile_box(m, r, tile, tiles_x, tiles_y)
+        for ty in range(b[1], b[3] + 1):
+            for tx in range(b[0], b[2] + 1):
+                pr = pixel_rect(tx, ty, tile, width, height)
+                if tile_hit(m, cn, thresh, pr[0], pr[1], pr[2], pr[3]):
+                    n += 1
+    counts[j] = n
+
+
+@wp.kernel
+def write_keys_kernel(
+    order: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.vec2i),
+    offsets: wp.array(dtype=wp.int32),
+    tile: int,
+    tiles_x: int,
+    tiles_y: int,
+    width: int,
+    height: int,
+    keys: wp.array(dtype=wp.int32),
+    vals: wp.array(dtype=wp.int32),
+):
+    j = wp.tid()
+    g = order[j]
+    r = radii[g]
+    if r[0] <= 0 and r[1] <= 0:
+        return
+    k = int(0)
+    if j > 0:
+        k = offsets[j - 1]
+    m = means2d[g]
+    cn = conics[g]
+    thresh = wp.log(opacities[g] / ALPHA_MIN) + TILE_TEST_SLACK
+    b = tile_box(m, r, tile, tiles_x, tiles_y)
+    for ty in range(b[1], b[3] + 1):
+        for tx in range(b[0], b[2] + 1):
+            pr = pixel_rect(tx, ty, tile, width, height)
+            if tile_hit(m, cn, thresh, pr[0], pr[1], pr[2], pr[3]):
+                keys[k] = ty * tiles_x + tx
+                vals[k] = g
+                k += 1
+
+
+@wp.kernel
+def tile_ranges_kernel(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array2d(dtype=wp.int32)):
+    """``ranges[t] = (first, end)`` of tile t in the sorted list; must be zeroed beforehand."""
+    k = wp.tid()
+    t = keys[k]
+    if k == 0 or keys[k - 1] != t:
+        ranges[t, 0] = k
+    if k == count - 1 or keys[k + 1] != t:
+        ranges[t, 1] = k + 1

@@ -1,0 +1,414 @@
+"""Host-side orchestration of the Warp rasterizer: scratch buffers, binning cache, CPU threading.
+
+``rasterize_forward`` and ``rasterize_backward`` take and fill ``wp.array`` buffers (as handed over
+by ``wp.jax_callable``) and launch, in order:
+
+forward:  project -> depth sort -> count tiles -> scan -> (one host read of the total) ->
+          write keys -> stable radix sort by tile -> tile ranges -> composite
+backward: composite adjoint -> projection adjoint -> viewmat reduction
+
+Scratch buffers live in a per-device :class:`Workspace` and grow geometrically, so steady-state
+calls allocate nothing. The sorted intersection list of a forward call is kept in one of a small
+ring of slots and found again by the backward through a ``(slot, generation)`` handle; when the
+slot has been reused in between (many renders before one backward), the backward re-bins from
+the saved projection, which gives the identical order.
+
+On the CPU a Warp launch runs on one thread; the compositing launches are therefore split into
+bands of tile rows that a small pool of Python threads pulls from a shared counter (Warp releases
+the GIL inside a launch). Each worker has its own gradient accumulators, summed at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .binning import count_tiles_kernel, depth_keys_kernel, tile_ranges_kernel, write_keys_kernel
+from .composite import composite_kernels
+from .projection import project_bwd_kernel, project_fwd_kernel
+from .validate import FLAG_MESSAGES, N_FLAGS, validate_camera_kernel, validate_gaussians_kernel
+
+TILE_SIZE = 16
+N_SLOTS = 8
+#: accumulation slots for the viewmat gradient (spreads CUDA atomics)
+VIEWMAT_SLOTS = 64
+
+
+def cpu_threads() -> int:
+    """Worker threads for CPU compositing: ``SPLATSEARCH_THREADS`` or the usable core count."""
+    env = os.environ.get("SPLATSEARCH_THREADS")
+    if env:
+        return max(1, int(env))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@wp.kernel
+def _sum_rows_kernel(src: wp.array2d(dtype=float), dst: wp.array(dtype=float)):
+    k = wp.tid()
+    s = float(0.0)
+    for r in range(src.shape[0]):
+        s += src[r, k]
+    dst[k] = s
+
+
+@wp.kernel
+def _stash_total_kernel(offsets: wp.array(dtype=wp.int32), n: int, flags: wp.array(dtype=wp.int32)):
+    flags[N_FLAGS] = offsets[n - 1]
+
+
+@wp.kernel
+def _add_float_kernel(src: wp.array(dtype=float), dst: wp.array(dtype=float)):
+    i = wp.tid()
+    dst[i] = dst[i] + src[i]
+
+
+@wp.kernel
+def _add_vec2_kernel(src: wp.array(dtype=wp.vec2), dst: wp.array(dtype=wp.vec2)):
+    i = wp.tid()
+    dst[i] = dst[i] + src[i]
+
+
+@wp.kernel
+def _add_vec3_kernel(src: wp.array(dtype=wp.vec3), dst: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    dst[i] = dst[i] + src[i]
+
+
+@wp.kernel
+def _add_flat_kernel(src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float)):
+    i, k = wp.tid()
+    dst[i, k] = dst[i, k] + src[i, k]
+
+
+class Workspace:
+    """Named scratch buffers on one device that only ever grow (by 1.5x), never shrink."""
+
+    def __init__(self, device):
+        self.device = device
+        self._bufs: dict[str, wp.array] = {}
+        self.lock = threading.RLock()
+
+    def get(self, name: str, n: int, dtype, zero: bool = False) -> wp.array:
+        buf = self._bufs.get(name)
+        if buf is None or buf.shape[0] < n or buf.dtype != dtype:
+            cap = max(n, int(1.5 * buf.shape[0]) if buf is not None else n, 16)
+            buf = wp.empty(cap, dtype=dtype, device=self.device)
+            self._bufs[name] = buf
+        view = buf[:n] if n > 0 else buf[:0]
+        if zero and n > 0:
+            view.zero_()
+        return view
+
+    def get2d(self, name: str, rows: int, cols: int, dtype, zero: bool = False) -> wp.array:
+        flat = self.get(name, rows * cols, dtype)
+        view = wp.array(ptr=flat.ptr, shape=(rows, cols), dtype=dtype, device=self.device, copy=False) \
+            if rows * cols > 0 else wp.empty((rows, cols), dtype=dtype, device=self.device)
+        if zero and rows * cols > 0:
+            view.zero_()
+        return view
+
+
+@dataclass
+class BinState:
+    """Binning of one forward call: the sorted intersection list and per-tile ranges."""
+
+    generation: int = -1
+    n_isect: int = 0
+    ranges: wp.array | None = None  # (num_tiles, 2) int32
+    ids: wp.array | None = None  # (n_isect,) int32, Gaussian index per intersection
+    ws: Workspace | None = None
+
+
+@dataclass
+class _DeviceState:
+    ws: Workspace
+    slots: list[BinState] = field(default_factory=list)
+    next_slot: int = 0
+    generation: int = 0
+
+
+_STATES: dict[str, _DeviceState] = {}
+_STATES_LOCK = threading.Lock()
+
+
+def _device_state(device) -> _DeviceState:
+    key = str(device)
+    with _STATES_LOCK:
+        st = _STATES.get(key)
+        if st is None:
+            st = _DeviceState(ws=Workspace(device))
+            st.slots = [BinState(ws=Workspace(device)) for _ in range(N_SLOTS)]
+            _STATES[key] = st
+        return st
+
+
+def grid_dims(width: int, height: int, tile: int = TILE_SIZE) -> tuple[int, int]:
+    return (width + tile - 1) // tile, (height + tile - 1) // tile
+
+
+def project(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
+            means2d, conics, depths, radii) -> None:
+    """Launch the projection kernel (all arguments are Warp arrays / scalars)."""
+    n = means.shape[0]
+    if n == 0:
+        return
+    wp.launch(project_fwd_kernel, dim=n,
+              inputs=[means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d],
+              outputs=[means2d, conics, depths, radii], device=means.device)
+
+
+def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, width: int, height: int,
+                  tile: int = TILE_SIZE, flags: wp.array | None = None) -> tuple[wp.array, wp.array, int]:
+    """Build the depth-ordered per-tile intersection lists.
+
+    Returns ``(ranges (num_tiles, 2) int32, ids (n_isect,) int32, n_isect)``; the buffers belong
+    to ``ws`` and stay valid until its next ``bin_gaussians`` call. When ``flags`` (N_FLAGS + 1,)
+    is given, validation flags are read back in the same host transfer as the count and a
+    ``ValueError`` naming the offending argument is raised.
+    """
+    device = means2d.device
+    n = means2d.shape[0]
+    tiles_x, tiles_y = grid_dims(width, height, tile)
+    n_tiles = tiles_x * tiles_y
+    ranges = ws.get2d("ranges", n_tiles, 2, wp.int32, zero=True)
+    if n == 0:
+        if flags is not None:
+            _raise_flags(flags.numpy())
+        return ranges, ws.get("ids", 0, wp.int32), 0
+    dkeys = ws.get("dkeys", 2 * n, wp.float32)
+    order = ws.get("order", 2 * n, wp.int32)
+    wp.launch(depth_keys_kernel, dim=n, inputs=[depths, radii], outputs=[dkeys, order], device=device)
+    wp.utils.radix_sort_pairs(dkeys, order, n)
+    counts = ws.get("counts", n, wp.int32)
+    offsets = ws.get("offsets", n, wp.int32)
+    args = [order, means2d, conics, opacities, radii, tile, tiles_x, tiles_y, width, height]
+    wp.launch(count_tiles_kernel, dim=n, inputs=args, outputs=[counts], device=device)
+    wp.utils.array_scan(counts, offsets, inclusive=True)
+    if flags is not None:
+        wp.launch(_stash_total_kernel, dim=1, inputs=[offsets, n, flags], device=device)
+        host = flags.numpy()  # the single host round trip of a forward
+        _raise_flags(host)
+        n_isect = int(host[N_FLAGS])
+    else:
+        n_isect = int(offsets[n - 1:n].numpy()[0])
+    ids = ws.get("ids", 2 * max(n_isect, 1), wp.int32)
+    if n_isect == 0:
+        return ranges, ids[:0], 0
+    keys = ws.get("keys", 2 * n_isect, wp.int32)
+    wp.launch(write_keys_kernel, dim=n, inputs=args[:5] + [offsets] + args[5:], outputs=[keys, ids],
+              device=device)
+    end_bit = max(1, int(n_tiles - 1).bit_length())
+    wp.utils.radix_sort_pairs(keys, ids, n_isect, end_bit=end_bit)
+    wp.launch(tile_ranges_kernel, dim=n_isect, inputs=[keys, n_isect], outputs=[ranges], device=device)
+    return ranges, ids[:n_isect], n_isect
+
+
+def _raise_flags(host_flags: np.ndarray) -> None:
+    for k in range(N_FLAGS):
+        if host_flags[k]:
+            raise ValueError(FLAG_MESSAGES[k])
+
+
+def _row_bands(width: int, height: int, tile: int, n_threads: int) -> list[tuple[int, int]]:
+    """Pixel ranges of tile-row bands, several per thread so that uneven rows balance out."""
+    tiles_y = (height + tile - 1) // tile
+    n_bands = tiles_y if n_threads > 1 else 1
+    bands = []
+    for b in range(n_bands):
+        r0 = (b * tiles_y // n_bands) * tile
+        r1 = min(height, ((b + 1) * tiles_y // n_bands) * tile)
+        if r1 > r0:
+            bands.append((r0 * width, r1 * width))
+    return bands
+
+
+def _run_bands(bands, n_threads: int, fn, kernel=None, device=None) -> None:
+    """Call ``fn(worker, p0, p1)`` for every band, ``n_threads`` workers pulling from a queue.
+
+    ``kernel`` is loaded first on this thread, so that workers never compile it concurrently.
+    """
+    if kernel is not None:
+        kernel.module.load(wp.get_device(device))
+    if n_threads <= 1 or len(bands) <= 1:
+        for p0, p1 in bands:
+            fn(0, p0, p1)
+        return
+    nxt = [0]
+    lock = threading.Lock()
+    errors: list[BaseException] = []
+
+    def worker(w: int) -> None:
+        try:
+            while True:
+                with lock:
+                    k = nxt[0]
+                    nxt[0] += 1
+                if k >= len(bands):
+                    return
+                fn(w, *bands[k])
+        except BaseException as e:  # re-raised on the calling thread
+            errors.append(e)
+
+    threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(1, n_threads)]
+    for th in threads:
+        th.start()
+    worker(0)
+    for th in threads:
+        th.join()
+    if errors:
+        raise errors[0]
+
+
+def _n_threads(device) -> int:
+    return cpu_threads() if wp.get_device(device).is_cpu else 1
+
+
+def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
+                      near: float, far: float, eps2d: float,
+                      out_color, out_depth, out_T, out_last, means2d, conics, depths, radii,
+                      n_isect_out, handle_out, tile: int = TILE_SIZE, validate: bool = True) -> BinState:
+    """Full forward pass into the given output arrays; returns the slot that holds the binning.
+
+    Shapes: means (N,) vec3, quats (N,) vec4 wxyz, scales (N,) vec3, opacities (N,), colors (N,)
+    vecC, viewmat (1,) mat44, K (1,) mat33; images are flat (H*W,) in row-major pixel order.
+    ``n_isect_out`` (1,) int32 and ``handle_out`` (2,) int32 receive the intersection count and
+    the (slot, generation) handle for :func:`rasterize_backward`.
+    """
+    device = means.device
+    st = _device_state(device)
+    with st.ws.lock:
+        C = colors.dtype._length_ if hasattr(colors.dtype, "_length_") else 1
+        n = means.shape[0]
+        flags = st.ws.get("flags", N_FLAGS + 1, wp.int32, zero=True)
+        if validate:
+            if n > 0:
+                colors2d = wp.array(ptr=colors.ptr, shape=(n, C), dtype=wp.float32, device=device, copy=False)
+                wp.launch(validate_gaussians_kernel, dim=n, inputs=[means, quats, scales, opacities, colors2d],
+                          outputs=[flags], device=device)
+            wp.launch(validate_camera_kernel, dim=1, inputs=[viewmat, K], outputs=[flags], device=device)
+        project(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
+                means2d, conics, depths, radii)
+        slot_idx = st.next_slot
+        st.next_slot = (st.next_slot + 1) % N_SLOTS
+        st.generation += 1
+        slot = st.slots[slot_idx]
+        slot.generation = -1
+        ranges, ids, n_isect = bin_gaussians(slot.ws, means2d, conics, opacities, depths, radii,
+                                             width, height, tile, flags=flags)
+        slot.generation, slot.ranges, slot.ids, slot.n_isect = st.generation, ranges, ids, n_isect
+        fwd, _, _ = composite_kernels(C)
+        tiles_x, _ = grid_dims(width, height, tile)
+        n_threads = _n_threads(device)
+
+        def launch(_w, p0, p1):
+            wp.launch(fwd, dim=p1 - p0,
+                      inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, tile, tiles_x, p0],
+                      outputs=[out_color, out_depth, out_T, out_last], device=device)
+
+        _run_bands(_row_bands(width, height, tile, n_threads), n_threads, launch, fwd, device)
+        n_isect_out.fill_(n_isect)
+        handle_np = np.array([slot_idx, st.generation], dtype=np.int32)
+        wp.copy(handle_out, wp.array(handle_np, dtype=wp.int32, device=device))
+        return slot
+
+
+def lookup_binning(device, handle: tuple[int, int], means2d, conics, opacities, depths, radii,
+                   width: int, height: int, tile: int = TILE_SIZE) -> tuple[wp.array, wp.array, int]:
+    """Binning for ``handle`` from the slot ring, or recomputed when the slot was reused."""
+    st = _device_state(device)
+    slot_idx, gen = handle
+    if 0 <= slot_idx < N_SLOTS:
+        slot = st.slots[slot_idx]
+        if slot.generation == gen and slot.ranges is not None:
+            return slot.ranges, slot.ids, slot.n_isect
+    return bin_gaussians(st.ws, means2d, conics, opacities, depths, radii, width, height, tile)
+
+
+def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
+                       eps2d: float, means2d, conics, depths, radii, out_T, out_last, handle,
+                       v_color, v_depth, v_alpha,
+                       v_means, v_quats, v_scales, v_opacities, v_colors, v_viewmat,
+                       tile: int = TILE_SIZE) -> None:
+    """Hand-written adjoint of :func:`rasterize_forward`.
+
+    ``v_color`` (H*W,) vecC, ``v_depth`` and ``v_alpha`` (H*W,) are the cotangents of the
+    composited colour, depth (D) and alpha = 1 - T. Writes v_means (N,) vec3, v_quats (N,) vec4,
+    v_scales (N,) vec3, v_opacities (N,), v_colors (N,) vecC and v_viewmat (16,) row-major.
+    ``handle`` is the host tuple (slot, generation) returned through ``handle_out``.
+    """
+    device = means.device
+    st = _device_state(device)
+    n = means.shape[0]
+    C = colors.dtype._length_ if hasattr(colors.dtype, "_length_") else 1
+    with st.ws.lock:
+        v_viewmat.zero_()
+        v_opacities.zero_()
+        v_colors.zero_()
+        if n == 0:
+            return
+        ranges, ids, _ = lookup_binning(device, handle, means2d, conics, opacities, depths, radii,
+                                        width, height, tile)
+        _, bwd, _ = composite_kernels(C)
+        tiles_x, _ = grid_dims(width, height, tile)
+        n_threads = _n_threads(device)
+        ws = st.ws
+        accs = []
+        for w in range(n_threads):
+            if w == 0:
+                acc = (ws.get("v_means2d", n, wp.vec2, zero=True), ws.get("v_conics", n, wp.vec3, zero=True),
+                       v_opacities, v_colors, ws.get("v_depths", n, wp.float32, zero=True))
+            else:
+                acc = (ws.get(f"v_means2d{w}", n, wp.vec2, zero=True), ws.get(f"v_conics{w}", n, wp.vec3, zero=True),
+                       ws.get(f"v_opac{w}", n, wp.float32, zero=True),
+                       ws.get2d(f"v_colors{w}", n, C, wp.float32, zero=True),
+                       ws.get(f"v_depths{w}", n, wp.float32, zero=True))
+            accs.append(acc)
+
+        def colors_view(a):
+            if a.ndim == 2:  # worker-local (n, C) float buffer seen as (n,) vecC
+                return wp.array(ptr=a.ptr, shape=(n,), dtype=colors.dtype, device=device, copy=False)
+            return a
+
+        def launch(w, p0, p1):
+            a = accs[w]
+            wp.launch(bwd, dim=p1 - p0,
+                      inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, tile, tiles_x, p0,
+                              out_T, out_last, v_color, v_depth, v_alpha],
+                      outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
+
+        _run_bands(_row_bands(width, height, tile, n_threads), n_threads, launch, bwd, device)
+        base = accs[0]
+        for a in accs[1:]:
+            wp.launch(_add_vec2_kernel, dim=n, inputs=[a[0], base[0]], device=device)
+            wp.launch(_add_vec3_kernel, dim=n, inputs=[a[1], base[1]], device=device)
+            wp.launch(_add_float_kernel, dim=n, inputs=[a[2], base[2]], device=device)
+            flat_dst = wp.array(ptr=v_colors.ptr, shape=(n, C), dtype=wp.float32, device=device, copy=False)
+            wp.launch(_add_flat_kernel, dim=(n, C), inputs=[a[3], flat_dst], device=device)
+            wp.launch(_add_float_kernel, dim=n, inputs=[a[4], base[4]], device=device)
+
+        vm_acc = ws.get2d("v_viewmat_acc", VIEWMAT_SLOTS, 16, wp.float32, zero=True)
+        wp.launch(project_bwd_kernel, dim=n,
+                  inputs=[means, quats, scales, viewmat, K, width, height, eps2d, conics, radii,
+                          base[0], base[1], base[4]],
+                  outputs=[v_means, v_quats, v_scales, vm_acc], device=device)
+        wp.launch(_sum_rows_kernel, dim=16, inputs=[vm_acc, v_viewmat], device=device)
+
+
+def count_evaluations(means2d, conics, opacities, ranges, ids, width: int, height: int,
+                      tile: int = TILE_SIZE) -> int:
+    """Exact number of Gaussian-pixel evaluations the forward compositing loop performs."""
+    device = means2d.device
+    _, _, count = composite_kernels(1)
+    tiles_x, _ = grid_dims(width, height, tile)
+    evals = wp.zeros(width * height, dtype=wp.int32, device=device)
+    wp.launch(count, dim=width * height,
+              inputs=[ranges, ids, means2d, conics, opacities, width, tile, tiles_x], outputs=[evals],
+              device=device)
+    return int(evals.numpy().astype(np.int64).sum())

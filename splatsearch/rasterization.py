@@ -1,0 +1,371 @@
+"""gsplat-style differentiable rasterization of 3-D Gaussians, in JAX over the Warp kernels.
+
+``rasterize`` works eagerly, under ``jax.jit`` and under ``jax.grad``: the Warp forward and the
+hand-written Warp backward are bound with ``wp.jax_callable`` (an XLA FFI call on CPU and CUDA,
+zero-copy) and glued together with ``jax.custom_vjp``.
+"""
+# NOTE: no ``from __future__ import annotations`` here: wp.jax_callable reads the Warp type
+# annotations of the callback functions at definition time.
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import warp as wp
+
+from splatsearch.kernels import pipeline as _pl
+
+wp.config.quiet = True
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+
+
+class RasterOutput(NamedTuple):
+    """Result of :func:`rasterize`. Leading camera axis present when several cameras are given.
+
+    Attributes:
+        image: (..., H, W, C) composited colours (background included), or None in "D"/"ED" mode.
+        depth: (..., H, W, 1) depth in metres, "D" (sum w z) or "ED" (D / alpha); None in "RGB" mode.
+        alpha: (..., H, W, 1) accumulated opacity, 1 - T.
+        meta: dict with ``radii`` (..., N, 2) int32 pixel radii (0 = culled), ``n_isect`` (...,)
+            int32 tile intersections, ``width``, ``height``, ``tile_size``.
+    """
+
+    image: jax.Array | None
+    depth: jax.Array | None
+    alpha: jax.Array
+    meta: dict
+
+
+# --------------------------------------------------------------------------------------------
+# Warp callbacks, one pair per colour-channel count
+# --------------------------------------------------------------------------------------------
+
+@functools.cache
+def _callables(C: int):
+    vecC = wp.types.vector(length=C, dtype=wp.float32)
+
+    def fwd(
+        means: wp.array(dtype=wp.vec3),
+        quats: wp.array(dtype=wp.vec4),
+        scales: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=wp.float32),
+        colors: wp.array(dtype=vecC),
+        viewmat: wp.array(dtype=wp.mat44),
+        K: wp.array(dtype=wp.mat33),
+        width: int,
+        height: int,
+        near: float,
+        far: float,
+        eps2d: float,
+        validate: int,
+        out_color: wp.array(dtype=vecC),
+        out_depth: wp.array(dtype=wp.float32),
+        out_T: wp.array(dtype=wp.float32),
+        out_last: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        depths: wp.array(dtype=wp.float32),
+        radii: wp.array(dtype=wp.vec2i),
+        n_isect: wp.array(dtype=wp.int32),
+        handle: wp.array(dtype=wp.int32),
+    ):
+        _pl.rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                              near, far, eps2d, out_color, out_depth, out_T, out_last, means2d,
+                              conics, depths, radii, n_isect, handle, validate=bool(validate))
+
+    def bwd(
+        means: wp.array(dtype=wp.vec3),
+        quats: wp.array(dtype=wp.vec4),
+        scales: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=wp.float32),
+        colors: wp.array(dtype=vecC),
+        viewmat: wp.array(dtype=wp.mat44),
+        K: wp.array(dtype=wp.mat33),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        depths: wp.array(dtype=wp.float32),
+        radii: wp.array(dtype=wp.vec2i),
+        out_T: wp.array(dtype=wp.float32),
+        out_last: wp.array(dtype=wp.int32),
+        handle: wp.array(dtype=wp.int32),
+        v_color: wp.array(dtype=vecC),
+        v_depth: wp.array(dtype=wp.float32),
+        v_alpha: wp.array(dtype=wp.float32),
+        width: int,
+        height: int,
+        eps2d: float,
+        v_means: wp.array(dtype=wp.vec3),
+        v_quats: wp.array(dtype=wp.vec4),
+        v_scales: wp.array(dtype=wp.vec3),
+        v_opacities: wp.array(dtype=wp.float32),
+        v_colors: wp.array(dtype=vecC),
+        v_viewmat: wp.array(dtype=wp.float32),
+    ):
+        h = handle.numpy()
+        _pl.rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                               eps2d, means2d, conics, depths, radii, out_T, out_last,
+                               (int(h[0]), int(h[1])), v_color, v_depth, v_alpha, v_means, v_quats,
+                               v_scales, v_opacities, v_colors, v_viewmat)
+
+    mode = wp.JaxCallableGraphMode.NONE  # the forward reads the intersection count on the host
+    return (wp.jax_callable(fwd, num_outputs=10, graph_mode=mode, vmap_method="sequential"),
+            wp.jax_callable(bwd, num_outputs=6, graph_mode=mode, vmap_method="sequential"))
+
+
+# --------------------------------------------------------------------------------------------
+# custom_vjp core: one camera, full parameters
+# --------------------------------------------------------------------------------------------
+
+class _Cfg(NamedTuple):
+    width: int
+    height: int
+    near: float
+    far: float
+    eps2d: float
+    validate: bool
+
+
+def _fwd_call(cfg: _Cfg, means, quats, scales, opacities, colors, viewmat, K):
+    N, C = colors.shape
+    HW = cfg.width * cfg.height
+    fwd, _ = _callables(C)
+    outs = fwd(means, quats, scales, opacities, colors, viewmat[None], K[None],
+               cfg.width, cfg.height, cfg.near, cfg.far, cfg.eps2d, int(cfg.validate),
+               output_dims={"out_color": (HW,), "out_depth": (HW,), "out_T": (HW,), "out_last": (HW,),
+                            "means2d": (N,), "conics": (N,), "depths": (N,), "radii": (N,),
+                            "n_isect": (1,), "handle": (2,)})
+    return outs
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _core(cfg: _Cfg, means, quats, scales, opacities, colors, viewmat, K):
+    return _core_fwd(cfg, means, quats, scales, opacities, colors, viewmat, K)[0]
+
+
+def _shape_outputs(cfg: _Cfg, C: int, color, depth, T, radii, n_isect):
+    H, W = cfg.height, cfg.width
+    return (color.reshape(H, W, C), depth.reshape(H, W, 1), (1.0 - T).reshape(H, W, 1),
+            radii.reshape(-1, 2), n_isect.reshape(()))
+
+
+def _core_fwd(cfg: _Cfg, means, quats, scales, opacities, colors, viewmat, K):
+    C = colors.shape[1]
+    color, depth, T, last, means2d, conics, depths, radii, n_isect, handle = _fwd_call(
+        cfg, means, quats, scales, opacities, colors, viewmat, K)
+    out = _shape_outputs(cfg, C, color, depth, T, radii, n_isect)
+    res = (means, quats, scales, opacities, colors, viewmat, K, means2d, conics, depths, radii, T,
+           last, handle)
+    return out, res
+
+
+def _core_bwd(cfg: _Cfg, res, cts):
+    (means, quats, scales, opacities, colors, viewmat, K, means2d, conics, depths, radii, T, last,
+     handle) = res
+    v_color, v_depth, v_alpha = cts[0], cts[1], cts[2]
+    N, C = colors.shape
+    HW = cfg.width * cfg.height
+    _, bwd = _callables(C)
+    v_means, v_quats, v_scales, v_opac, v_colors, v_vm = bwd(
+        means, quats, scales, opacities, colors, viewmat[None], K[None], means2d, conics, depths,
+        radii, T, last, handle, v_color.reshape(HW, C).astype(jnp.float32),
+        v_depth.reshape(HW).astype(jnp.float32), v_alpha.reshape(HW).astype(jnp.float32),
+        cfg.width, cfg.height, cfg.eps2d,
+        output_dims={"v_means": (N,), "v_quats": (N,), "v_scales": (N,), "v_opacities": (N,),
+                     "v_colors": (N,), "v_viewmat": (16,)})
+    return (v_means, v_quats, v_scales, v_opac, v_colors, v_vm.reshape(4, 4), jnp.zeros_like(K))
+
+
+_core.defvjp(_core_fwd, _core_bwd)
+
+
+# --------------------------------------------------------------------------------------------
+# input checking
+# --------------------------------------------------------------------------------------------
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _as_float(name: str, x, shape_desc: str, ndim: int | None = None):
+    if x is None:
+        raise ValueError(f"{name} must be an array of shape {shape_desc}, got None")
+    dtype = getattr(x, "dtype", None)
+    if dtype is None:
+        x = np.asarray(x)
+        dtype = x.dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"{name} must have a floating dtype (shape {shape_desc}), got {dtype}")
+    x = jnp.asarray(x, dtype=jnp.float32)
+    if ndim is not None and x.ndim != ndim:
+        raise ValueError(f"{name} must have shape {shape_desc}, got {tuple(x.shape)}")
+    return x
+
+
+def _check_values(name: str, x, *, nonneg: bool = False, unit: bool = False) -> None:
+    if not _is_concrete(x):
+        return
+    a = np.asarray(x)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or Inf")
+    if nonneg and np.any(a < 0):
+        raise ValueError(f"{name} must be non-negative (min {a.min():g})")
+    if unit and a.size and (a.min() < 0 or a.max() > 1):
+        raise ValueError(f"{name} must lie in [0, 1] (got range [{a.min():g}, {a.max():g}])")
+
+
+def _check_camera(viewmat, K, width: int, height: int) -> None:
+    if _is_concrete(viewmat):
+        v = np.asarray(viewmat)
+        if not np.all(np.isfinite(v)):
+            raise ValueError("viewmat contains NaN or Inf")
+        if not np.allclose(v[..., 3, :], [0, 0, 0, 1]):
+            raise ValueError("viewmat must be a world-to-camera 4x4 with last row (0, 0, 0, 1)")
+    if _is_concrete(K):
+        k = np.asarray(K, dtype=np.float64)
+        if not np.all(np.isfinite(k)):
+            raise ValueError("K contains NaN or Inf")
+        det = np.linalg.det(k)
+        if np.any(np.abs(det) < 1e-12) or np.any(k[..., 0, 0] <= 0) or np.any(k[..., 1, 1] <= 0):
+            raise ValueError("K must be invertible with positive focal lengths fx, fy")
+
+
+# --------------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------------
+
+def rasterize(
+    means: Any,
+    quats: Any,
+    scales: Any,
+    opacities: Any,
+    colors: Any,
+    viewmat: Any,
+    K: Any,
+    width: int,
+    height: int,
+    render_mode: str = "RGB+D",
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    backgrounds: Any = None,
+    validate: bool = True,
+) -> RasterOutput:
+    """Render 3-D Gaussians with the tile rasterizer (gsplat 1.5 / Inria 3DGS rules).
+
+    Args:
+        means: (N, 3) world positions in metres.
+        quats: (N, 4) rotations as (w, x, y, z), normalised inside; None for isotropic Gaussians.
+        scales: (N, 3) standard deviations in metres (non-negative), or (N,) / (N, 1) for
+            isotropic Gaussians (one scale per Gaussian).
+        opacities: (N,) opacities in [0, 1].
+        colors: (N, C) per-Gaussian features (RGB in [0, 1] for C = 3; any C >= 1 works).
+        viewmat: (4, 4) world-to-camera matrix (OpenCV frame: x right, y down, z forward), or
+            (B, 4, 4) for B cameras.
+        K: (3, 3) pinhole intrinsics in pixels, or (B, 3, 3); pixel centres at +0.5.
+        width, height: image size in pixels (static).
+        render_mode: "RGB", "D", "ED", "RGB+D" or "RGB+ED". "D" is the alpha-weighted depth
+            sum, "ED" the expected depth D / alpha.
+        near_plane, far_plane: camera-depth culling range in metres.
+        eps2d: low-pass added to the 2-D covariance diagonal, in px^2.
+        backgrounds: optional (C,) or (B, C) colour composited behind the Gaussians.
+        validate: check values (NaN/Inf, ranges, K) on the device when inputs are traced.
+
+    Returns:
+        :class:`RasterOutput` ``(image, depth, alpha, meta)``; see its docstring for shapes.
+
+    Raises:
+        ValueError: naming the argument, for wrong shapes or dtypes, NaN or Inf, negative scales,
+            opacities outside [0, 1], a non-positive image size, or a non-invertible K. Under
+            ``jax.jit`` value errors surface as a ``JaxRuntimeError`` carrying the same message.
+
+    Gradients (``jax.grad``) flow from image, depth and alpha into means, quats, scales,
+    opacities, colors, backgrounds and viewmat; K receives zero gradient.
+    """
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {v!r}")
+    width, height = int(width), int(height)
+    if not (0 < near_plane < far_plane):
+        raise ValueError(f"need 0 < near_plane < far_plane, got {near_plane}, {far_plane}")
+    if eps2d < 0:
+        raise ValueError(f"eps2d must be non-negative, got {eps2d}")
+
+    means = _as_float("means", means, "(N, 3)", ndim=2)
+    if means.shape[1] != 3:
+        raise ValueError(f"means must have shape (N, 3), got {tuple(means.shape)}")
+    N = means.shape[0]
+    scales = _as_float("scales", scales, "(N, 3), (N, 1) or (N,)")
+    if scales.shape in ((N,), (N, 1)):
+        scales = jnp.broadcast_to(scales.reshape(N, 1), (N, 3))
+    elif scales.shape != (N, 3):
+        raise ValueError(f"scales must have shape (N, 3), (N, 1) or (N,) with N={N}, got {tuple(scales.shape)}")
+    if quats is None:
+        quats = jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], jnp.float32), (N, 4))
+    quats = _as_float("quats", quats, f"({N}, 4)", ndim=2)
+    if quats.shape != (N, 4):
+        raise ValueError(f"quats must have shape ({N}, 4), got {tuple(quats.shape)}")
+    opacities = _as_float("opacities", opacities, f"({N},)")
+    if opacities.shape == (N, 1):
+        opacities = opacities.reshape(N)
+    if opacities.shape != (N,):
+        raise ValueError(f"opacities must have shape ({N},), got {tuple(opacities.shape)}")
+    colors = _as_float("colors", colors, f"({N}, C)", ndim=2)
+    if colors.shape[0] != N or colors.shape[1] < 1:
+        raise ValueError(f"colors must have shape ({N}, C) with C >= 1, got {tuple(colors.shape)}")
+    C = colors.shape[1]
+
+    viewmat = _as_float("viewmat", viewmat, "(4, 4) or (B, 4, 4)")
+    K = _as_float("K", K, "(3, 3) or (B, 3, 3)")
+    if viewmat.shape[-2:] != (4, 4) or viewmat.ndim not in (2, 3):
+        raise ValueError(f"viewmat must have shape (4, 4) or (B, 4, 4), got {tuple(viewmat.shape)}")
+    if K.shape[-2:] != (3, 3) or K.ndim not in (2, 3):
+        raise ValueError(f"K must have shape (3, 3) or (B, 3, 3), got {tuple(K.shape)}")
+    batched = viewmat.ndim == 3 or K.ndim == 3
+    B = max(viewmat.shape[0] if viewmat.ndim == 3 else 1, K.shape[0] if K.ndim == 3 else 1)
+    for name, x in (("viewmat", viewmat), ("K", K)):
+        if x.ndim == 3 and x.shape[0] != B:
+            raise ValueError(f"{name} has {x.shape[0]} cameras but another argument has {B}")
+    viewmats = jnp.broadcast_to(viewmat, (B, 4, 4))
+    Ks = jnp.broadcast_to(K, (B, 3, 3))
+    if backgrounds is not None:
+        backgrounds = _as_float("backgrounds", backgrounds, "(C,) or (B, C)")
+        if backgrounds.shape[-1] != C or backgrounds.ndim not in (1, 2):
+            raise ValueError(f"backgrounds must have shape ({C},) or (B, {C}), got {tuple(backgrounds.shape)}")
+        backgrounds = jnp.broadcast_to(backgrounds, (B, C))
+
+    _check_values("means", means)
+    _check_values("quats", quats)
+    if _is_concrete(quats) and N and np.any(np.sum(np.asarray(quats) ** 2, axis=1) <= 0):
+        raise ValueError("quats contains a zero-length quaternion")
+    _check_values("scales", scales, nonneg=True)
+    _check_values("opacities", opacities, unit=True)
+    _check_values("colors", colors)
+    _check_camera(viewmats, Ks, width, height)
+
+    cfg = _Cfg(width, height, float(near_plane), float(far_plane), float(eps2d), bool(validate))
+    images, depths_, alphas, radii, n_isects = [], [], [], [], []
+    for b in range(B):
+        img, dep, alp, rad, nis = _core(cfg, means, quats, scales, opacities, colors, viewmats[b], Ks[b])
+        if backgrounds is not None:
+            img = img + (1.0 - alp) * backgrounds[b]
+        if render_mode.endswith("ED"):
+            dep = dep / jnp.maximum(alp, 1e-10)
+        images.append(img)
+        depths_.append(dep)
+        alphas.append(alp)
+        radii.append(rad)
+        n_isects.append(nis)
+
+    def pick(xs):
+        return jnp.stack(xs) if batched else xs[0]
+
+    image = pick(images) if "RGB" in render_mode else None
+    depth = pick(depths_) if "D" in render_mode else None
+    meta = {"radii": pick(radii), "n_isect": pick(n_isects), "width": width, "height": height,
+            "tile_size": _pl.TILE_SIZE}
+    return RasterOutput(image, depth, pick(alphas), meta)
