@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import warp as wp
 
+# Warp's automatic adjoints are never used: every backward here is written by hand.
+wp.set_module_options({"enable_backward": False})
+
 from .projection import ALPHA_MIN
 
 #: slack on the log-threshold of the tile test so that float rounding never drops a live Gaussian

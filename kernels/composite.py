@@ -21,13 +21,16 @@ import warp as wp
 
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 
+#: slack on the log-cutoff so that float rounding never skips a pixel whose alpha reaches 1/255
+SIGMA_SLACK = wp.constant(1.0e-3)
+
 
 @functools.cache
 def composite_kernels(C: int):
     """Return ``(forward, backward, count)`` Warp kernels for C colour channels."""
     vecC = wp.types.vector(length=C, dtype=wp.float32)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def composite_fwd(
         ranges: wp.array2d(dtype=wp.int32),
         ids: wp.array(dtype=wp.int32),
@@ -82,7 +85,7 @@ def composite_kernels(C: int):
         out_T[pix] = T
         out_last[pix] = last
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def composite_bwd(
         ranges: wp.array2d(dtype=wp.int32),
         ids: wp.array(dtype=wp.int32),
@@ -154,7 +157,7 @@ def composite_kernels(C: int):
                 wp.atomic_add(v_means2d, g, wp.vec2(v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy)))
                 wp.atomic_add(v_opacities, g, vis * v_a)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def composite_count(
         ranges: wp.array2d(dtype=wp.int32),
         ids: wp.array(dtype=wp.int32),
@@ -195,3 +198,234 @@ def composite_kernels(C: int):
         evals[pix] = n
 
     return composite_fwd, composite_bwd, composite_count
+
+
+@wp.func
+def cutoff(o: float) -> float:
+    """sigma above which alpha = o exp(-sigma) is surely below 1/255 (with a float-safety slack)."""
+    return wp.log(o / ALPHA_MIN) + SIGMA_SLACK
+
+
+@wp.func
+def row_span(m: wp.vec2, cn: wp.vec3, tcut: float, y0: int, y1: int) -> wp.vec2i:
+    """Inclusive pixel rows [lo, hi] within [y0, y1) where sigma <= tcut is possible (+1 row margin)."""
+    c0 = wp.float64(cn[0])
+    c1 = wp.float64(cn[1])
+    c2 = wp.float64(cn[2])
+    det = c0 * c2 - c1 * c1
+    lo = y0
+    hi = y1 - 1
+    if det > wp.float64(0.0):
+        ry = wp.float32(wp.sqrt(wp.float64(2.0) * wp.float64(tcut) * c0 / det)) + 1.0
+        lo = wp.max(y0, int(wp.ceil(wp.clamp(m[1] - 0.5 - ry, float(y0) - 1.0, float(y1)))))
+        hi = wp.min(y1 - 1, int(wp.floor(wp.clamp(m[1] - 0.5 + ry, float(y0) - 1.0, float(y1)))))
+    return wp.vec2i(lo, hi)
+
+
+@wp.func
+def col_span(m: wp.vec2, cn: wp.vec3, tcut: float, dy: float, x0: int, x1: int) -> wp.vec2i:
+    """Inclusive pixel columns [lo, hi] within [x0, x1) of row offset dy = my - (py + 0.5) where
+    sigma <= tcut is possible (+1 px margin); lo > hi when the row misses the ellipse."""
+    c0 = wp.float64(cn[0])
+    c1 = wp.float64(cn[1])
+    c2 = wp.float64(cn[2])
+    dyd = wp.float64(dy)
+    disc = wp.float64(2.0) * c0 * wp.float64(tcut) - (c0 * c2 - c1 * c1) * dyd * dyd
+    if disc < wp.float64(0.0) or c0 <= wp.float64(0.0):
+        return wp.vec2i(x0, x0 - 1)
+    sq = wp.sqrt(disc)
+    # sigma(dx) <= tcut  <=>  dx in [(-c1 dy - sq) / c0, (-c1 dy + sq) / c0], dx = mx - (px + 0.5)
+    dx_lo = wp.float32((-c1 * dyd - sq) / c0)
+    dx_hi = wp.float32((-c1 * dyd + sq) / c0)
+    lo = wp.max(x0, int(wp.ceil(wp.clamp(m[0] - dx_hi - 1.5, float(x0) - 1.0, float(x1)))))
+    hi = wp.min(x1 - 1, int(wp.floor(wp.clamp(m[0] - dx_lo + 0.5, float(x0) - 1.0, float(x1)))))
+    return wp.vec2i(lo, hi)
+
+
+@functools.cache
+def composite_tile_kernels(C: int):
+    """Return ``(forward, backward)`` kernels with one thread per 16x16 tile (the CPU variant).
+
+    Per Gaussian the thread visits only the rows and, per row, the pixel interval where
+    ``sigma <= ln(255 o)`` is possible, and it tests sigma before the exp. Every visited pixel is
+    evaluated with exactly the arithmetic of the per-pixel kernels, so both give the same image;
+    the skipped pixels are the ones those kernels would skip after computing alpha < 1/255.
+    Per-pixel state lives in the output (forward) or scratch (backward) buffers that the thread
+    owns; the backward sums a Gaussian's gradient over the tile before one atomic add.
+    """
+    vecC = wp.types.vector(length=C, dtype=wp.float32)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def composite_fwd_tile(
+        ranges: wp.array2d(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=vecC),
+        depths: wp.array(dtype=float),
+        width: int,
+        height: int,
+        tile: int,
+        tiles_x: int,
+        tile0: int,
+        done: wp.array(dtype=wp.int32),
+        out_color: wp.array(dtype=vecC),
+        out_depth: wp.array(dtype=float),
+        out_T: wp.array(dtype=float),
+        out_last: wp.array(dtype=wp.int32),
+    ):
+        t = wp.tid() + tile0
+        x0 = (t % tiles_x) * tile
+        y0 = (t // tiles_x) * tile
+        x1 = wp.min(x0 + tile, width)
+        y1 = wp.min(y0 + tile, height)
+        start = ranges[t, 0]
+        end = ranges[t, 1]
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                pix = py * width + px
+                out_color[pix] = vecC()
+                out_depth[pix] = 0.0
+                out_T[pix] = 1.0
+                out_last[pix] = start - 1
+                done[pix] = 0
+        n_pix = (x1 - x0) * (y1 - y0)
+        n_done = int(0)
+        for j in range(start, end):
+            g = ids[j]
+            m = means2d[g]
+            cn = conics[g]
+            o = opacities[g]
+            tcut = cutoff(o)
+            rows = row_span(m, cn, tcut, y0, y1)
+            for py in range(rows[0], rows[1] + 1):
+                fy = float(py) + 0.5
+                dy = m[1] - fy
+                cols = col_span(m, cn, tcut, dy, x0, x1)
+                for px in range(cols[0], cols[1] + 1):
+                    pix = py * width + px
+                    if done[pix] != 0:
+                        continue
+                    dx = m[0] - (float(px) + 0.5)
+                    sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+                    if sigma < 0.0 or sigma > tcut:
+                        continue
+                    alpha = wp.min(ALPHA_MAX, o * wp.exp(-sigma))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    T = out_T[pix]
+                    nT = T * (1.0 - alpha)
+                    if nT <= T_MIN:
+                        done[pix] = 1
+                        n_done += 1
+                        continue
+                    w = alpha * T
+                    out_color[pix] = out_color[pix] + colors[g] * w
+                    out_depth[pix] = out_depth[pix] + depths[g] * w
+                    out_T[pix] = nT
+                    out_last[pix] = j
+            if n_done == n_pix:
+                break
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def composite_bwd_tile(
+        ranges: wp.array2d(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=vecC),
+        depths: wp.array(dtype=float),
+        width: int,
+        height: int,
+        tile: int,
+        tiles_x: int,
+        tile0: int,
+        out_T: wp.array(dtype=float),
+        out_last: wp.array(dtype=wp.int32),
+        v_color: wp.array(dtype=vecC),
+        v_depth: wp.array(dtype=float),
+        v_alpha: wp.array(dtype=float),
+        s_T: wp.array(dtype=float),
+        s_buf: wp.array(dtype=vecC),
+        s_bufd: wp.array(dtype=float),
+        v_means2d: wp.array(dtype=wp.vec2),
+        v_conics: wp.array(dtype=wp.vec3),
+        v_opacities: wp.array(dtype=float),
+        v_colors: wp.array(dtype=vecC),
+        v_depths: wp.array(dtype=float),
+    ):
+        t = wp.tid() + tile0
+        x0 = (t % tiles_x) * tile
+        y0 = (t // tiles_x) * tile
+        x1 = wp.min(x0 + tile, width)
+        y1 = wp.min(y0 + tile, height)
+        start = ranges[t, 0]
+        jmax = start - 1
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                pix = py * width + px
+                s_T[pix] = out_T[pix]
+                s_buf[pix] = vecC()
+                s_bufd[pix] = 0.0
+                jmax = wp.max(jmax, out_last[pix])
+        for jj in range(jmax - start + 1):
+            j = jmax - jj
+            g = ids[j]
+            m = means2d[g]
+            cn = conics[g]
+            o = opacities[g]
+            c = colors[g]
+            d = depths[g]
+            tcut = cutoff(o)
+            rows = row_span(m, cn, tcut, y0, y1)
+            g_m = wp.vec2()
+            g_cn = wp.vec3()
+            g_o = float(0.0)
+            g_c = vecC()
+            g_d = float(0.0)
+            hit = int(0)
+            for py in range(rows[0], rows[1] + 1):
+                fy = float(py) + 0.5
+                dy = m[1] - fy
+                cols = col_span(m, cn, tcut, dy, x0, x1)
+                for px in range(cols[0], cols[1] + 1):
+                    pix = py * width + px
+                    if j > out_last[pix]:
+                        continue
+                    dx = m[0] - (float(px) + 0.5)
+                    sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+                    if sigma < 0.0 or sigma > tcut:
+                        continue
+                    vis = wp.exp(-sigma)
+                    alpha = wp.min(ALPHA_MAX, o * vis)
+                    if alpha < ALPHA_MIN:
+                        continue
+                    hit = 1
+                    ra = 1.0 / (1.0 - alpha)
+                    T = s_T[pix] * ra
+                    s_T[pix] = T
+                    fac = alpha * T
+                    vc = v_color[pix]
+                    vd = v_depth[pix]
+                    g_c = g_c + vc * fac
+                    g_d = g_d + vd * fac
+                    buf = s_buf[pix]
+                    bufd = s_bufd[pix]
+                    v_a = wp.dot(c * T - buf * ra, vc) + (d * T - bufd * ra) * vd + out_T[pix] * ra * v_alpha[pix]
+                    s_buf[pix] = buf + c * fac
+                    s_bufd[pix] = bufd + d * fac
+                    if o * vis <= ALPHA_MAX:
+                        v_sigma = -o * vis * v_a
+                        g_cn = g_cn + wp.vec3(0.5 * v_sigma * dx * dx, v_sigma * dx * dy, 0.5 * v_sigma * dy * dy)
+                        g_m = g_m + wp.vec2(v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy))
+                        g_o = g_o + vis * v_a
+            if hit != 0:
+                wp.atomic_add(v_colors, g, g_c)
+                wp.atomic_add(v_depths, g, g_d)
+                wp.atomic_add(v_conics, g, g_cn)
+                wp.atomic_add(v_means2d, g, g_m)
+                wp.atomic_add(v_opacities, g, g_o)
+
+    return composite_fwd_tile, composite_bwd_tile

@@ -27,8 +27,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+# Warp's automatic adjoints are never used: every backward here is written by hand.
+wp.set_module_options({"enable_backward": False})
+
 from .binning import count_tiles_kernel, depth_keys_kernel, tile_ranges_kernel, write_keys_kernel
-from .composite import composite_kernels
+from .composite import composite_kernels, composite_tile_kernels
 from .projection import project_bwd_kernel, project_fwd_kernel
 from .validate import FLAG_MESSAGES, N_FLAGS, validate_camera_kernel, validate_gaussians_kernel
 
@@ -230,29 +233,25 @@ def _row_bands(width: int, height: int, tile: int, n_threads: int) -> list[tuple
 
 
 def _run_bands(bands, n_threads: int, fn, kernel=None, device=None) -> None:
-    """Call ``fn(worker, p0, p1)`` for every band, ``n_threads`` workers pulling from a queue.
+    """Call ``fn(worker, b0, b1)`` for every band; worker w takes bands w, w + n, w + 2n, ...
 
-    ``kernel`` is loaded first on this thread, so that workers never compile it concurrently.
+    The static round-robin keeps results bitwise reproducible (each worker's gradient sums run in
+    a fixed order) while interleaving cheap and expensive rows. ``kernel`` is loaded first on this
+    thread, so that workers never compile it concurrently.
     """
     if kernel is not None:
         kernel.module.load(wp.get_device(device))
-    if n_threads <= 1 or len(bands) <= 1:
-        for p0, p1 in bands:
-            fn(0, p0, p1)
+    n_threads = max(1, min(n_threads, len(bands)))
+    if n_threads == 1:
+        for b0, b1 in bands:
+            fn(0, b0, b1)
         return
-    nxt = [0]
-    lock = threading.Lock()
     errors: list[BaseException] = []
 
     def worker(w: int) -> None:
         try:
-            while True:
-                with lock:
-                    k = nxt[0]
-                    nxt[0] += 1
-                if k >= len(bands):
-                    return
-                fn(w, *bands[k])
+            for b0, b1 in bands[w::n_threads]:
+                fn(w, b0, b1)
         except BaseException as e:  # re-raised on the calling thread
             errors.append(e)
 
@@ -268,6 +267,22 @@ def _run_bands(bands, n_threads: int, fn, kernel=None, device=None) -> None:
 
 def _n_threads(device) -> int:
     return cpu_threads() if wp.get_device(device).is_cpu else 1
+
+
+def composite_variant(device) -> str:
+    """"tile" (one thread per tile, exact ellipse spans; best on CPU) or "pixel" (one thread per
+    pixel, the GPU layout). ``SPLATSEARCH_COMPOSITE`` overrides the per-device default."""
+    env = os.environ.get("SPLATSEARCH_COMPOSITE", "").strip().lower()
+    if env in ("tile", "pixel"):
+        return env
+    return "tile" if wp.get_device(device).is_cpu else "pixel"
+
+
+def _tile_bands(n_tiles: int, tiles_x: int, n_threads: int) -> list[tuple[int, int]]:
+    """Tile-index ranges, one tile row each when threaded (rows differ a lot in cost)."""
+    if n_threads <= 1:
+        return [(0, n_tiles)]
+    return [(r, min(n_tiles, r + tiles_x)) for r in range(0, n_tiles, tiles_x)]
 
 
 def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
@@ -303,16 +318,29 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
         ranges, ids, n_isect = bin_gaussians(slot.ws, means2d, conics, opacities, depths, radii,
                                              width, height, tile, flags=flags)
         slot.generation, slot.ranges, slot.ids, slot.n_isect = st.generation, ranges, ids, n_isect
-        fwd, _, _ = composite_kernels(C)
-        tiles_x, _ = grid_dims(width, height, tile)
+        tiles_x, tiles_y = grid_dims(width, height, tile)
         n_threads = _n_threads(device)
+        if composite_variant(device) == "tile":
+            fwd, _ = composite_tile_kernels(C)
+            done = st.ws.get("done", width * height, wp.int32)
 
-        def launch(_w, p0, p1):
-            wp.launch(fwd, dim=p1 - p0,
-                      inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, tile, tiles_x, p0],
-                      outputs=[out_color, out_depth, out_T, out_last], device=device)
+            def launch(_w, t0, t1):
+                wp.launch(fwd, dim=t1 - t0,
+                          inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
+                                  tiles_x, t0, done],
+                          outputs=[out_color, out_depth, out_T, out_last], device=device)
 
-        _run_bands(_row_bands(width, height, tile, n_threads), n_threads, launch, fwd, device)
+            bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
+        else:
+            fwd, _, _ = composite_kernels(C)
+
+            def launch(_w, p0, p1):
+                wp.launch(fwd, dim=p1 - p0,
+                          inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, tile, tiles_x, p0],
+                          outputs=[out_color, out_depth, out_T, out_last], device=device)
+
+            bands = _row_bands(width, height, tile, n_threads)
+        _run_bands(bands, n_threads, launch, fwd, device)
         n_isect_out.fill_(n_isect)
         handle_np = np.array([slot_idx, st.generation], dtype=np.int32)
         wp.copy(handle_out, wp.array(handle_np, dtype=wp.int32, device=device))
@@ -355,9 +383,9 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
             return
         ranges, ids, _ = lookup_binning(device, handle, means2d, conics, opacities, depths, radii,
                                         width, height, tile)
-        _, bwd, _ = composite_kernels(C)
-        tiles_x, _ = grid_dims(width, height, tile)
+        tiles_x, tiles_y = grid_dims(width, height, tile)
         n_threads = _n_threads(device)
+        variant = composite_variant(device)
         ws = st.ws
         accs = []
         for w in range(n_threads):
@@ -376,14 +404,33 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
                 return wp.array(ptr=a.ptr, shape=(n,), dtype=colors.dtype, device=device, copy=False)
             return a
 
-        def launch(w, p0, p1):
-            a = accs[w]
-            wp.launch(bwd, dim=p1 - p0,
-                      inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, tile, tiles_x, p0,
-                              out_T, out_last, v_color, v_depth, v_alpha],
-                      outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
+        if variant == "tile":
+            _, bwd = composite_tile_kernels(C)
+            hw = width * height
+            s_T = ws.get("s_T", hw, wp.float32)
+            s_buf = ws.get("s_buf", hw, colors.dtype)
+            s_bufd = ws.get("s_bufd", hw, wp.float32)
 
-        _run_bands(_row_bands(width, height, tile, n_threads), n_threads, launch, bwd, device)
+            def launch(w, t0, t1):
+                a = accs[w]
+                wp.launch(bwd, dim=t1 - t0,
+                          inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
+                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, s_T, s_buf, s_bufd],
+                          outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
+
+            bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
+        else:
+            _, bwd, _ = composite_kernels(C)
+
+            def launch(w, p0, p1):
+                a = accs[w]
+                wp.launch(bwd, dim=p1 - p0,
+                          inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, tile, tiles_x, p0,
+                                  out_T, out_last, v_color, v_depth, v_alpha],
+                          outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
+
+            bands = _row_bands(width, height, tile, n_threads)
+        _run_bands(bands, n_threads, launch, bwd, device)
         base = accs[0]
         for a in accs[1:]:
             wp.launch(_add_vec2_kernel, dim=n, inputs=[a[0], base[0]], device=device)

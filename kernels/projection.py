@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import warp as wp
 
+# Warp's automatic adjoints are never used: every backward here is written by hand.
+wp.set_module_options({"enable_backward": False})
+
 ALPHA_MIN = wp.constant(1.0 / 255.0)
 ALPHA_MAX = wp.constant(0.999)
 T_MIN = wp.constant(1.0e-4)

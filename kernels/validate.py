@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import warp as wp
 
+# Warp's automatic adjoints are never used: every backward here is written by hand.
+wp.set_module_options({"enable_backward": False})
+
 # flag slots: one per failure, so the host can name the argument
 F_MEANS = 0
 F_QUATS = 1

@@ -18,7 +18,7 @@ def _ref(params, vm, K, **kw):
 
 
 @pytest.mark.parametrize("kind", scenes.KINDS)
-def test_forward_matches_dense_reference(kind):
+def test_forward_matches_dense_reference(kind, variant):
     params = scenes.scene(kind)
     vm, K = scenes.camera()
     out = splatsearch.rasterize(*params, vm, K, W, H, render_mode="RGB+D")

@@ -62,7 +62,7 @@ def _grads(kind, seed=0, mode="RGB+D", bg=None):
 
 
 @pytest.mark.parametrize("kind", ["random", "single", "straddle", "full_frame", "subpixel", "behind", "near_plane"])
-def test_grad_matches_reference(kind):
+def test_grad_matches_reference(kind, variant):
     g_ours, g_ref = _grads(kind)
     for name, a, b in zip(NAMES, g_ours, g_ref):
         _compare(a, b, f"{kind}/{name}")
