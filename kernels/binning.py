@@ -1,10 +1,10 @@
 """Tile intersection: depth order, exact opacity-aware ellipse/tile tests, keys, tile ranges.
 
-Binning runs in depth order. Gaussians are first sorted by camera depth (stable, so ties keep
-their index order, as gsplat's (tile | depth) keys do). Intersections are then counted and written
-in that order, so a *stable* radix sort on the tile id alone (11 bits for 648x420) leaves every
-tile's list sorted front to back. This is cheaper than sorting 64-bit (tile | depth) keys and gives
-exactly the same order.
+Gaussians are first sorted by camera depth (a stable float radix sort, so ties keep their index
+order, as gsplat's (tile | depth bits) keys do) and each gets its depth *rank*. Intersections are
+counted and written in index order (sequential memory access) with the key ``tile << rank_bits |
+rank``; a radix sort over only ``tile_bits + rank_bits`` bits (28 for the profile scene) then
+leaves every tile's list sorted front to back, exactly as gsplat orders it.
 
 A Gaussian is kept in a tile only if its alpha can reach 1/255 at one of the tile's pixel centres:
 the minimum of the quadratic form over the rectangle of pixel centres is compared with
@@ -58,6 +58,12 @@ def tile_box(m: wp.vec2, r: wp.vec2i, tile: int, tiles_x: int, tiles_y: int) -> 
 
 
 @wp.kernel
+def depth_rank_kernel(order: wp.array(dtype=wp.int32), rank: wp.array(dtype=wp.int32)):
+    j = wp.tid()
+    rank[order[j]] = j
+
+
+@wp.kernel
 def depth_keys_kernel(
     depths: wp.array(dtype=float),
     radii: wp.array(dtype=wp.vec2i),
@@ -84,7 +90,6 @@ def pixel_rect(tx: int, ty: int, tile: int, width: int, height: int) -> wp.vec4:
 
 @wp.kernel
 def count_tiles_kernel(
-    order: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
     conics: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
@@ -94,68 +99,99 @@ def count_tiles_kernel(
     tiles_y: int,
     width: int,
     height: int,
+    j0: int,
     counts: wp.array(dtype=wp.int32),
+    masks: wp.array(dtype=wp.int32),
 ):
-    j = wp.tid()
-    g = order[j]
+    """Tiles hit per Gaussian; for boxes of <= 31 tiles also the hit bit mask, so that
+    ``write_keys_kernel`` does not repeat the tests."""
+    g = wp.tid() + j0
     r = radii[g]
     n = int(0)
+    mask = int(0)
     if r[0] > 0 or r[1] > 0:
         m = means2d[g]
-        cn = conics[g]
-        thresh = wp.log(opacities[g] / ALPHA_MIN) + TILE_TEST_SLACK
         b = tile_box(m, r, tile, tiles_x, tiles_y)
-        for ty in range(b[1], b[3] + 1):
-            for tx in range(b[0], b[2] + 1):
-                pr = pixel_rect(tx, ty, tile, width, height)
-                if tile_hit(m, cn, thresh, pr[0], pr[1], pr[2], pr[3]):
-                    n += 1
-    counts[j] = n
+        bw = b[2] - b[0] + 1
+        nbox = bw * (b[3] - b[1] + 1)
+        if nbox == 1:
+            n = 1  # the Gaussian is visible, so its only tile keeps it (a conservative choice)
+            mask = 1
+        elif nbox > 0:
+            cn = conics[g]
+            thresh = wp.log(opacities[g] / ALPHA_MIN) + TILE_TEST_SLACK
+            k = int(0)
+            for ty in range(b[1], b[3] + 1):
+                for tx in range(b[0], b[2] + 1):
+                    pr = pixel_rect(tx, ty, tile, width, height)
+                    if tile_hit(m, cn, thresh, pr[0], pr[1], pr[2], pr[3]):
+                        n += 1
+                        if k < 31:
+                            mask = mask | (1 << k)
+                    k += 1
+    counts[g] = n
+    masks[g] = mask
 
 
 @wp.kernel
 def write_keys_kernel(
-    order: wp.array(dtype=wp.int32),
+    rank: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
     conics: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     radii: wp.array(dtype=wp.vec2i),
     offsets: wp.array(dtype=wp.int32),
+    masks: wp.array(dtype=wp.int32),
     tile: int,
     tiles_x: int,
     tiles_y: int,
     width: int,
     height: int,
-    keys: wp.array(dtype=wp.int32),
+    j0: int,
+    rank_bits: int,
+    keys: wp.array(dtype=wp.int64),
     vals: wp.array(dtype=wp.int32),
 ):
-    j = wp.tid()
-    g = order[j]
+    g = wp.tid() + j0
     r = radii[g]
     if r[0] <= 0 and r[1] <= 0:
         return
     k = int(0)
-    if j > 0:
-        k = offsets[j - 1]
+    if g > 0:
+        k = offsets[g - 1]
+    low = wp.int64(rank[g])
     m = means2d[g]
+    b = tile_box(m, r, tile, tiles_x, tiles_y)
+    nbox = (b[2] - b[0] + 1) * (b[3] - b[1] + 1)
+    if nbox <= 31:
+        mask = masks[g]
+        bit = int(0)
+        for ty in range(b[1], b[3] + 1):
+            for tx in range(b[0], b[2] + 1):
+                if (mask >> bit) & 1 != 0:
+                    keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(rank_bits)) | low
+                    vals[k] = g
+                    k += 1
+                bit += 1
+        return
     cn = conics[g]
     thresh = wp.log(opacities[g] / ALPHA_MIN) + TILE_TEST_SLACK
-    b = tile_box(m, r, tile, tiles_x, tiles_y)
     for ty in range(b[1], b[3] + 1):
         for tx in range(b[0], b[2] + 1):
             pr = pixel_rect(tx, ty, tile, width, height)
             if tile_hit(m, cn, thresh, pr[0], pr[1], pr[2], pr[3]):
-                keys[k] = ty * tiles_x + tx
+                keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(rank_bits)) | low
                 vals[k] = g
                 k += 1
 
 
 @wp.kernel
-def tile_ranges_kernel(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array2d(dtype=wp.int32)):
+def tile_ranges_kernel(keys: wp.array(dtype=wp.int64), count: int, rank_bits: int,
+                       ranges: wp.array2d(dtype=wp.int32)):
     """``ranges[t] = (first, end)`` of tile t in the sorted list; must be zeroed beforehand."""
     k = wp.tid()
-    t = keys[k]
-    if k == 0 or keys[k - 1] != t:
+    t = int(keys[k] >> wp.int64(rank_bits))
+    if k == 0 or int(keys[k - 1] >> wp.int64(rank_bits)) != t:
         ranges[t, 0] = k
-    if k == count - 1 or keys[k + 1] != t:
+    if k == count - 1 or int(keys[k + 1] >> wp.int64(rank_bits)) != t:
         ranges[t, 1] = k + 1

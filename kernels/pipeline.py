@@ -30,7 +30,7 @@ import warp as wp
 # Warp's automatic adjoints are never used: every backward here is written by hand.
 wp.set_module_options({"enable_backward": False})
 
-from .binning import count_tiles_kernel, depth_keys_kernel, tile_ranges_kernel, write_keys_kernel
+from .binning import count_tiles_kernel, depth_keys_kernel, depth_rank_kernel, tile_ranges_kernel, write_keys_kernel
 from .composite import composite_kernels, composite_tile_kernels
 from .projection import project_bwd_kernel, project_fwd_kernel
 from .validate import FLAG_MESSAGES, N_FLAGS, validate_camera_kernel, validate_gaussians_kernel
@@ -162,9 +162,8 @@ def project(means, quats, scales, opacities, viewmat, K, width, height, near, fa
     n = means.shape[0]
     if n == 0:
         return
-    wp.launch(project_fwd_kernel, dim=n,
-              inputs=[means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d],
-              outputs=[means2d, conics, depths, radii], device=means.device)
+    pre = [means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d]
+    launch_split(project_fwd_kernel, n, lambda i0, _w: pre + [i0], [means2d, conics, depths, radii], means.device)
 
 
 def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, width: int, height: int,
@@ -189,10 +188,14 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     order = ws.get("order", 2 * n, wp.int32)
     wp.launch(depth_keys_kernel, dim=n, inputs=[depths, radii], outputs=[dkeys, order], device=device)
     wp.utils.radix_sort_pairs(dkeys, order, n)
+    rank = ws.get("rank", n, wp.int32)
+    wp.launch(depth_rank_kernel, dim=n, inputs=[order], outputs=[rank], device=device)
     counts = ws.get("counts", n, wp.int32)
+    masks = ws.get("masks", n, wp.int32)
     offsets = ws.get("offsets", n, wp.int32)
-    args = [order, means2d, conics, opacities, radii, tile, tiles_x, tiles_y, width, height]
-    wp.launch(count_tiles_kernel, dim=n, inputs=args, outputs=[counts], device=device)
+    grid = [tile, tiles_x, tiles_y, width, height]
+    gauss = [means2d, conics, opacities, radii]
+    launch_split(count_tiles_kernel, n, lambda j0, _w: gauss + grid + [j0], [counts, masks], device)
     wp.utils.array_scan(counts, offsets, inclusive=True)
     if flags is not None:
         wp.launch(_stash_total_kernel, dim=1, inputs=[offsets, n, flags], device=device)
@@ -204,13 +207,26 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     ids = ws.get("ids", 2 * max(n_isect, 1), wp.int32)
     if n_isect == 0:
         return ranges, ids[:0], 0
-    keys = ws.get("keys", 2 * n_isect, wp.int32)
-    wp.launch(write_keys_kernel, dim=n, inputs=args[:5] + [offsets] + args[5:], outputs=[keys, ids],
-              device=device)
-    end_bit = max(1, int(n_tiles - 1).bit_length())
+    keys = ws.get("keys", 2 * n_isect, wp.int64)
+    rank_bits = max(1, int(n - 1).bit_length())
+    launch_split(write_keys_kernel, n, lambda j0, _w: [rank] + gauss + [offsets, masks] + grid + [j0, rank_bits],
+                 [keys, ids], device)
+    end_bit = rank_bits + max(1, int(n_tiles - 1).bit_length())
     wp.utils.radix_sort_pairs(keys, ids, n_isect, end_bit=end_bit)
-    wp.launch(tile_ranges_kernel, dim=n_isect, inputs=[keys, n_isect], outputs=[ranges], device=device)
+    wp.launch(tile_ranges_kernel, dim=n_isect, inputs=[keys, n_isect, rank_bits], outputs=[ranges], device=device)
     return ranges, ids[:n_isect], n_isect
+
+
+def launch_split(kernel, n: int, inputs, outputs: list, device) -> None:
+    """Launch a per-element ``kernel`` over n elements; on the CPU split in contiguous chunks over
+    the worker threads. ``inputs(offset, worker)`` returns the input list for one chunk."""
+    n_threads = _n_threads(device) if n >= 4096 else 1
+    bounds = [(n * w // n_threads, n * (w + 1) // n_threads) for w in range(n_threads)]
+
+    def launch(w, a, b):
+        wp.launch(kernel, dim=b - a, inputs=inputs(a, w), outputs=outputs, device=device)
+
+    _run_bands([bd for bd in bounds if bd[1] > bd[0]], n_threads, launch, kernel, device)
 
 
 def _raise_flags(host_flags: np.ndarray) -> None:
@@ -441,10 +457,10 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
             wp.launch(_add_float_kernel, dim=n, inputs=[a[4], base[4]], device=device)
 
         vm_acc = ws.get2d("v_viewmat_acc", VIEWMAT_SLOTS, 16, wp.float32, zero=True)
-        wp.launch(project_bwd_kernel, dim=n,
-                  inputs=[means, quats, scales, viewmat, K, width, height, eps2d, conics, radii,
-                          base[0], base[1], base[4]],
-                  outputs=[v_means, v_quats, v_scales, vm_acc], device=device)
+        per = VIEWMAT_SLOTS // max(1, n_threads)
+        pre = [means, quats, scales, viewmat, K, width, height, eps2d, conics, radii, base[0], base[1], base[4]]
+        launch_split(project_bwd_kernel, n, lambda i0, w: pre + [i0, w * per, per],
+                     [v_means, v_quats, v_scales, vm_acc], device)
         wp.launch(_sum_rows_kernel, dim=16, inputs=[vm_acc, v_viewmat], device=device)
 
 

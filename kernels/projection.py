@@ -91,12 +91,13 @@ def project_fwd_kernel(
     near: float,
     far: float,
     eps2d: float,
+    i0: int,
     means2d: wp.array(dtype=wp.vec2),
     conics: wp.array(dtype=wp.vec3),
     depths: wp.array(dtype=float),
     radii: wp.array(dtype=wp.vec2i),
 ):
-    i = wp.tid()
+    i = wp.tid() + i0
     vm = viewmat[0]
     R = camera_rotation(vm)
     t = wp.vec3(vm[0, 3], vm[1, 3], vm[2, 3])
@@ -167,6 +168,9 @@ def project_bwd_kernel(
     v_means2d: wp.array(dtype=wp.vec2),
     v_conics: wp.array(dtype=wp.vec3),
     v_depths: wp.array(dtype=float),
+    i0: int,
+    slot0: int,
+    n_slots: int,
     v_means: wp.array(dtype=wp.vec3),
     v_quats: wp.array(dtype=wp.vec4),
     v_scales: wp.array(dtype=wp.vec3),
@@ -174,10 +178,11 @@ def project_bwd_kernel(
 ):
     """Adjoint of ``project_fwd_kernel``.
 
-    ``v_viewmat`` has one row of 12 floats (dR row-major, then dt) per accumulation slot; each
-    Gaussian adds into slot ``i % slots`` so that CUDA atomics do not all collide on one address.
+    ``v_viewmat`` rows are accumulation slots of 16 floats (row-major 4x4; the last row stays 0);
+    Gaussian i adds into row ``slot0 + i % n_slots``: on CUDA this spreads the atomics, on the
+    CPU every concurrently running launch gets rows of its own.
     """
-    i = wp.tid()
+    i = wp.tid() + i0
     r = radii[i]
     if r[0] <= 0 and r[1] <= 0:
         v_means[i] = wp.vec3(0.0, 0.0, 0.0)
@@ -260,7 +265,7 @@ def project_bwd_kernel(
     v_qn = quat_to_rotmat_vjp(qn, v_Rq)
     v_quats[i] = (v_qn - qn * wp.dot(qn, v_qn)) / qlen
 
-    slot = i % v_viewmat.shape[0]
+    slot = slot0 + i % n_slots
     for a in range(3):
         for b in range(3):
             wp.atomic_add(v_viewmat, slot, a * 4 + b, v_R[a, b])

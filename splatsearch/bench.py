@@ -152,3 +152,62 @@ def time_call(fn, repeats: int = 5, warmup: int = 2) -> tuple[float, float]:
         fn()
         ts.append(time.perf_counter() - t0)
     return float(np.median(ts)), float(np.min(ts))
+
+
+#: the box's 2-core AVX2 ceiling for forward Gaussian-pixel evaluations (see DESIGN.md)
+CPU_PEAK_EVALS_PER_S = 5.0e9
+
+
+@dataclass
+class BenchResult:
+    name: str
+    n: int
+    width: int
+    height: int
+    n_isect: int
+    evals: int
+    fwd_s: float
+    fwd_bwd_s: float
+
+    @property
+    def evals_per_s(self) -> float:
+        return self.evals / self.fwd_s
+
+    @property
+    def peak_fraction(self) -> float:
+        return self.evals_per_s / CPU_PEAK_EVALS_PER_S
+
+
+def make_render_fns(scene: Scene):
+    """Jitted ``forward(*params)`` and ``forward+backward(*params)`` on ``scene`` (RGB+D)."""
+    import jax
+    import jax.numpy as jnp
+
+    from splatsearch.rasterization import rasterize
+
+    W, H = scene.width, scene.height
+
+    def fwd(m, q, s, o, c, vm, K):
+        out = rasterize(m, q, s, o, c, vm, K, W, H, render_mode="RGB+D")
+        return out.image, out.depth, out.alpha
+
+    def loss(m, q, s, o, c, vm, K):
+        img, dep, alp = fwd(m, q, s, o, c, vm, K)
+        return jnp.mean(img) + 0.1 * jnp.mean(dep) + jnp.mean(alp)
+
+    params = tuple(jnp.asarray(a) for a in scene.args[:7])
+    return jax.jit(fwd), jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4, 5))), params
+
+
+def run_benchmark(scene: Scene, name: str, repeats: int = 5) -> BenchResult:
+    """Time forward and forward+backward of ``scene`` (median of ``repeats`` after warm-up)."""
+    import jax
+
+    from splatsearch.rasterization import rasterize
+
+    fwd, fwd_bwd, params = make_render_fns(scene)
+    t_f, _ = time_call(lambda: jax.block_until_ready(fwd(*params)), repeats)
+    t_fb, _ = time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), repeats)
+    n_isect = int(rasterize(*params, scene.width, scene.height).meta["n_isect"])
+    return BenchResult(name, scene.means.shape[0], scene.width, scene.height, n_isect,
+                       count_gaussian_pixel_evaluations(scene), t_f, t_fb)
