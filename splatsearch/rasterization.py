@@ -261,7 +261,8 @@ def rasterize(
         scales: (N, 3) standard deviations in metres (non-negative), or (N,) / (N, 1) for
             isotropic Gaussians (one scale per Gaussian).
         opacities: (N,) opacities in [0, 1].
-        colors: (N, C) per-Gaussian features (RGB in [0, 1] for C = 3; any C >= 1 works).
+        colors: (N, C) per-Gaussian features (RGB in [0, 1] for C = 3; any C >= 1 works); may be
+            None in the depth-only modes "D" and "ED", which do not composite colours.
         viewmat: (4, 4) world-to-camera matrix (OpenCV frame: x right, y down, z forward), or
             (B, 4, 4) for B cameras.
         K: (3, 3) pinhole intrinsics in pixels, or (B, 3, 3); pixel centres at +0.5.
@@ -314,7 +315,11 @@ def rasterize(
         opacities = opacities.reshape(N)
     if opacities.shape != (N,):
         raise ValueError(f"opacities must have shape ({N},), got {tuple(opacities.shape)}")
+    if "RGB" not in render_mode and colors is None:
+        colors = jnp.zeros((N, 1), jnp.float32)  # depth-only: composite one dummy channel
     colors = _as_float("colors", colors, f"({N}, C)", ndim=2)
+    if "RGB" not in render_mode:
+        colors = jnp.zeros((N, 1), jnp.float32)
     if colors.shape[0] != N or colors.shape[1] < 1:
         raise ValueError(f"colors must have shape ({N}, C) with C >= 1, got {tuple(colors.shape)}")
     C = colors.shape[1]

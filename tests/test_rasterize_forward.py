@@ -74,6 +74,11 @@ def test_render_modes_and_channels():
     np.testing.assert_allclose(np.asarray(out.image), np.asarray(color), atol=1e-5)
     d = splatsearch.rasterize(*params, vm, K, W, H, render_mode="D")
     assert d.image is None and d.depth.shape == (H, W, 1)
+    _, depth, alpha, _ = _ref(params, vm, K)
+    np.testing.assert_allclose(np.asarray(d.depth), np.asarray(depth), atol=4e-5)
+    ed = splatsearch.rasterize(m, q, s, o, None, vm, K, W, H, render_mode="ED")
+    mask = np.asarray(alpha)[..., 0] > 0.05
+    np.testing.assert_allclose(np.asarray(ed.depth)[mask], np.asarray(depth / alpha)[mask], rtol=1e-4)
 
 
 def test_isotropic_scales():
