@@ -5,12 +5,12 @@ import warp as _wp
 
 _wp.config.quiet = True
 
+from .parallel import cpu_threads, launch_split, run_bands  # noqa: E402
 from .pipeline import (  # noqa: E402
     TILE_SIZE,
     Workspace,
     bin_gaussians,
     count_evaluations,
-    cpu_threads,
     grid_dims,
     project,
     rasterize_backward,
@@ -24,6 +24,8 @@ __all__ = [
     "count_evaluations",
     "cpu_threads",
     "grid_dims",
+    "launch_split",
+    "run_bands",
     "project",
     "rasterize_backward",
     "rasterize_forward",

@@ -32,6 +32,7 @@ wp.set_module_options({"enable_backward": False})
 
 from .binning import count_tiles_kernel, depth_keys_kernel, depth_rank_kernel, tile_ranges_kernel, write_keys_kernel
 from .composite import composite_kernels, composite_tile_kernels
+from .parallel import launch_split, n_threads_for, run_bands
 from .projection import project_bwd_kernel, project_fwd_kernel
 from .validate import FLAG_MESSAGES, N_FLAGS, validate_camera_kernel, validate_gaussians_kernel
 
@@ -39,17 +40,6 @@ TILE_SIZE = 16
 N_SLOTS = 8
 #: accumulation slots for the viewmat gradient (spreads CUDA atomics)
 VIEWMAT_SLOTS = 64
-
-
-def cpu_threads() -> int:
-    """Worker threads for CPU compositing: ``SPLATSEARCH_THREADS`` or the usable core count."""
-    env = os.environ.get("SPLATSEARCH_THREADS")
-    if env:
-        return max(1, int(env))
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
 
 
 @wp.kernel
@@ -217,18 +207,6 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     return ranges, ids[:n_isect], n_isect
 
 
-def launch_split(kernel, n: int, inputs, outputs: list, device) -> None:
-    """Launch a per-element ``kernel`` over n elements; on the CPU split in contiguous chunks over
-    the worker threads. ``inputs(offset, worker)`` returns the input list for one chunk."""
-    n_threads = _n_threads(device) if n >= 4096 else 1
-    bounds = [(n * w // n_threads, n * (w + 1) // n_threads) for w in range(n_threads)]
-
-    def launch(w, a, b):
-        wp.launch(kernel, dim=b - a, inputs=inputs(a, w), outputs=outputs, device=device)
-
-    _run_bands([bd for bd in bounds if bd[1] > bd[0]], n_threads, launch, kernel, device)
-
-
 def _raise_flags(host_flags: np.ndarray) -> None:
     for k in range(N_FLAGS):
         if host_flags[k]:
@@ -246,43 +224,6 @@ def _row_bands(width: int, height: int, tile: int, n_threads: int) -> list[tuple
         if r1 > r0:
             bands.append((r0 * width, r1 * width))
     return bands
-
-
-def _run_bands(bands, n_threads: int, fn, kernel=None, device=None) -> None:
-    """Call ``fn(worker, b0, b1)`` for every band; worker w takes bands w, w + n, w + 2n, ...
-
-    The static round-robin keeps results bitwise reproducible (each worker's gradient sums run in
-    a fixed order) while interleaving cheap and expensive rows. ``kernel`` is loaded first on this
-    thread, so that workers never compile it concurrently.
-    """
-    if kernel is not None:
-        kernel.module.load(wp.get_device(device))
-    n_threads = max(1, min(n_threads, len(bands)))
-    if n_threads == 1:
-        for b0, b1 in bands:
-            fn(0, b0, b1)
-        return
-    errors: list[BaseException] = []
-
-    def worker(w: int) -> None:
-        try:
-            for b0, b1 in bands[w::n_threads]:
-                fn(w, b0, b1)
-        except BaseException as e:  # re-raised on the calling thread
-            errors.append(e)
-
-    threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(1, n_threads)]
-    for th in threads:
-        th.start()
-    worker(0)
-    for th in threads:
-        th.join()
-    if errors:
-        raise errors[0]
-
-
-def _n_threads(device) -> int:
-    return cpu_threads() if wp.get_device(device).is_cpu else 1
 
 
 def composite_variant(device) -> str:
@@ -335,7 +276,7 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
                                              width, height, tile, flags=flags)
         slot.generation, slot.ranges, slot.ids, slot.n_isect = st.generation, ranges, ids, n_isect
         tiles_x, tiles_y = grid_dims(width, height, tile)
-        n_threads = _n_threads(device)
+        n_threads = n_threads_for(device)
         if composite_variant(device) == "tile":
             fwd, _ = composite_tile_kernels(C)
             done = st.ws.get("done", width * height, wp.int32)
@@ -356,7 +297,7 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
                           outputs=[out_color, out_depth, out_T, out_last], device=device)
 
             bands = _row_bands(width, height, tile, n_threads)
-        _run_bands(bands, n_threads, launch, fwd, device)
+        run_bands(bands, n_threads, launch, fwd, device)
         n_isect_out.fill_(n_isect)
         handle_np = np.array([slot_idx, st.generation], dtype=np.int32)
         wp.copy(handle_out, wp.array(handle_np, dtype=wp.int32, device=device))
@@ -400,7 +341,7 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
         ranges, ids, _ = lookup_binning(device, handle, means2d, conics, opacities, depths, radii,
                                         width, height, tile)
         tiles_x, tiles_y = grid_dims(width, height, tile)
-        n_threads = _n_threads(device)
+        n_threads = n_threads_for(device)
         variant = composite_variant(device)
         ws = st.ws
         accs = []
@@ -446,7 +387,7 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
                           outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
 
             bands = _row_bands(width, height, tile, n_threads)
-        _run_bands(bands, n_threads, launch, bwd, device)
+        run_bands(bands, n_threads, launch, bwd, device)
         base = accs[0]
         for a in accs[1:]:
             wp.launch(_add_vec2_kernel, dim=n, inputs=[a[0], base[0]], device=device)
