@@ -1,7 +1,10 @@
 """Command-line interface: ``splatsearch <command>``.
 
 Commands:
-    bench   time the rasterizer (forward and forward + backward) on the benchmark scenes.
+    bench         time the rasterizer (forward and forward + backward) on the benchmark scenes.
+    sim preview   top-down map and sample frames of a procedural house.
+    sim episodes  sample instance-image-goal episodes of a house into a JSON file.
+    sim export    write a procedural house as .glb.
 """
 
 from __future__ import annotations
@@ -37,6 +40,36 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sim(args: argparse.Namespace) -> int:
+    import time
+
+    from rich.console import Console
+
+    from splatsearch import sim
+
+    console = Console()
+    t0 = time.perf_counter()
+    house = sim.make_house(args.seed, args.rooms)
+    t_house = time.perf_counter() - t0
+    if args.sim_command == "preview":
+        with console.status("rendering preview ..."):
+            paths = sim.preview.write_preview(house, args.out, seed=args.seed)
+        console.print(f"house {args.seed}: {len(house.rooms)} rooms, {len(house.objects)} objects, "
+                      f"{len(house.faces):,} triangles, built in {t_house * 1e3:.0f} ms")
+        for p in paths:
+            console.print(f"wrote {p}")
+    elif args.sim_command == "episodes":
+        env = sim.HouseEnv(house)
+        with console.status(f"sampling {args.n} {args.split} episodes ..."):
+            eps = sim.make_episodes(house, args.n, args.split, seed=args.episode_seed, env=env)
+        sim.save_episodes(eps, args.out)
+        console.print(f"wrote {len(eps)} episodes to {args.out}")
+    elif args.sim_command == "export":
+        sim.save_house(house, args.out)
+        console.print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="splatsearch", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -45,6 +78,21 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scene", choices=["profile", "small", "all"], default="all")
     b.add_argument("--repeats", type=int, default=5, help="timed repetitions after warm-up (>= 1)")
     b.set_defaults(func=_cmd_bench)
+
+    s = sub.add_parser("sim", help="procedural houses and IIN episodes")
+    ssub = s.add_subparsers(dest="sim_command", required=True)
+    for name, help_, default_out in (("preview", "top-down map + sample frames (PNG)", "runs/preview"),
+                                     ("episodes", "sample episodes into a JSON file", "runs/episodes.json"),
+                                     ("export", "write the house as .glb", "runs/house.glb")):
+        c = ssub.add_parser(name, help=help_)
+        c.add_argument("--seed", type=int, default=0, help="house seed (>= 0)")
+        c.add_argument("--rooms", type=int, default=None, help="number of rooms, 3..8 (default: from the seed)")
+        c.add_argument("--out", default=default_out)
+        if name == "episodes":
+            c.add_argument("--split", choices=["val", "val-hard"], default="val")
+            c.add_argument("--n", type=int, default=10)
+            c.add_argument("--episode-seed", type=int, default=0)
+        c.set_defaults(func=_cmd_sim)
     return p
 
 
@@ -54,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
         build_parser().error("--repeats must be >= 1")
     try:
         return args.func(args)
+    except ValueError as e:
+        print(f"splatsearch: error: {e}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -461,17 +461,34 @@ def _place_furniture(rng, rooms, doors, mats, B: _Builder, next_inst: int, per_r
             mark(c - 1.0, a - 0.2, c + 1.0, b + 0.2)
         else:
             mark(a - 0.2, c - 1.0, b + 0.2, c + 1.0)
+    # where the robot centre may go: 0.25 m from walls (half thickness + radius + slack)
+    clear = 0.25
     floor = np.zeros((ny, nx), bool)
     for r in rooms:
-        mark(r.x0 + 0.1, r.y0 + 0.1, r.x1 - 0.1, r.y1 - 0.1, floor)
+        mark(r.x0 + clear, r.y0 + clear, r.x1 - clear, r.y1 - clear, floor)
+    door_cells = []
     for axis, c, a, b in doors:  # the passage through each doorway
         if axis == "x":
-            mark(c - 0.3, a + 0.05, c + 0.3, b - 0.05, floor)
+            mark(c - clear - 0.1, a + 0.22, c + clear + 0.1, b - 0.22, floor)
+            door_cells.append((int(((a + b) / 2) / FREE_CELL), int(c / FREE_CELL)))
         else:
-            mark(a + 0.05, c - 0.3, b - 0.05, c + 0.3, floor)
+            mark(a + 0.22, c - clear - 0.1, b - 0.22, c + clear + 0.1, floor)
+            door_cells.append((int(c / FREE_CELL), int(((a + b) / 2) / FREE_CELL)))
+    door_rc = tuple(np.array(door_cells).T)
     objects: list[SceneObject] = []
-    robot = int(np.ceil(0.3 / FREE_CELL))  # keep 0.6 m passages between objects
-    disk = ndimage.generate_binary_structure(2, 1)
+
+    def connected(blocked: np.ndarray) -> bool:
+        """Doorways mutually reachable, and no free pocket of 0.2 m^2 or more cut off."""
+        free = floor & (ndimage.distance_transform_edt(~blocked) * FREE_CELL > clear)
+        lab, n = ndimage.label(free)
+        ids = lab[door_rc]
+        if ids.min() == 0 or not (ids == ids[0]).all():
+            return False
+        sizes = np.bincount(lab.ravel(), minlength=n + 1)
+        sizes[0] = 0
+        sizes[ids[0]] = 0
+        return bool(sizes.max(initial=0) < 20)
+
     for r in rooms:
         pool = list(ROOM_CLASSES[r.kind])
         if not distractors:
@@ -494,12 +511,8 @@ def _place_furniture(rng, rooms, doors, mats, B: _Builder, next_inst: int, per_r
                 mark(cx - w / 2, cy - d / 2, cx + w / 2, cy + d / 2, trial)
                 if (trial & (objs | keepout)).any():
                     continue
-                blocked = objs | trial
-                free = floor & ~ndimage.binary_dilation(blocked, disk, iterations=robot)
-                lab, nlab = ndimage.label(free)
-                sizes = np.bincount(lab.ravel())[1:] if nlab else np.zeros(0)
-                # the free floor must stay one piece (tiny slivers along walls do not count)
-                if nlab == 0 or (sizes >= 15).sum() != 1:
+                # every doorway must stay reachable from every other one
+                if not connected(objs | trial):
                     continue
                 objs |= trial
                 ang = yaw_k * np.pi / 2
