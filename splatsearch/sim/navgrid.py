@@ -74,7 +74,11 @@ def geodesic_distance(free: np.ndarray, targets: np.ndarray, cell_size: float) -
         return out
     phi = np.where(targets, -1.0, 1.0)
     phi = np.ma.MaskedArray(phi, mask=~free)
-    d = skfmm.distance(phi, dx=cell_size)
+    try:
+        d = skfmm.distance(phi, dx=cell_size)
+    except ValueError:  # no free cell borders a target: nothing but the targets is reachable
+        out[targets] = 0.0
+        return out
     vals = np.ma.filled(d, np.inf)
     # skfmm measures from the zero level set between target and free cells: targets get 0
     vals = np.where(targets, 0.0, np.maximum(vals + 0.5 * cell_size, 0.0))

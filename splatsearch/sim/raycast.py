@@ -172,7 +172,7 @@ class HouseRenderer:
             raise ValueError("house has no faces")
         self._points = wp.array(house.vertices.astype(np.float32), dtype=wp.vec3, device=dev)
         self._faces = wp.array(house.faces.astype(np.int32).ravel(), dtype=wp.int32, device=dev)
-        self.mesh = wp.Mesh(points=self._points, indices=self._faces, bvh_constructor="lbvh" if dev.is_cpu else "sah")
+        self.mesh = wp.Mesh(points=self._points, indices=self._faces, bvh_constructor="sah")
         mats = house.materials.arrays()
         n_mat = max(1, len(house.materials))
         pad = lambda a, shape: a if len(a) else np.zeros(shape, a.dtype)  # noqa: E731
