@@ -189,7 +189,12 @@ def test_episodes_reachable_and_reproducible(house, env, split, tmp_path):
     assert [e.to_json() for e in again] == [e.to_json() for e in eps]
     path = tmp_path / "eps.json"
     sim.save_episodes(eps, str(path))
-    assert [e.to_json() for e in sim.load_episodes(str(path))] == [e.to_json() for e in eps]
+    loaded = sim.load_episodes(str(path))
+    assert [e.to_json() for e in loaded] == [e.to_json() for e in eps]
+    # replay: the house comes back from the episode alone
+    rebuilt = sim.house_for_episode(loaded[0])
+    np.testing.assert_array_equal(rebuilt.vertices, house.vertices)
+    np.testing.assert_array_equal(rebuilt.face_instance, house.face_instance)
 
 
 def test_success_and_path_replay(house, env):

@@ -13,6 +13,7 @@ from .episodes import (
     EpisodeJudge,
     goal_image,
     goal_viewpoints,
+    house_for_episode,
     load_episodes,
     make_episodes,
     save_episodes,
@@ -27,7 +28,7 @@ from . import preview  # noqa: E402,F401
 __all__ = [
     "ACTIONS", "CLASS_IDS", "CLASS_NAMES", "GOAL_CLASSES", "SPLITS", "Episode", "EpisodeJudge", "Frame", "House",
     "HouseEnv", "HouseRenderer", "NavGrid", "Observation", "OdometryNoise", "Room", "SceneObject", "SensorNoise",
-    "build_navgrid", "camera_viewmat", "geodesic_distance", "goal_image", "goal_viewpoints", "intrinsics",
+    "build_navgrid", "camera_viewmat", "geodesic_distance", "goal_image", "goal_viewpoints", "house_for_episode", "intrinsics",
     "load_episodes", "load_house", "look_at_viewmat", "make_episodes", "make_house", "save_episodes", "save_house",
     "spl",
 ]

@@ -282,6 +282,15 @@ def make_episodes(house: House, n: int, split: str = "val", seed: int = 0, *, en
     return episodes
 
 
+def house_for_episode(ep: Episode) -> House:
+    """Rebuild the house an episode was sampled in (from its seed and room count)."""
+    from .house import make_house
+
+    if ep.generator_version != GENERATOR_VERSION:
+        raise ValueError(f"episode was made by house generator v{ep.generator_version}; this is v{GENERATOR_VERSION}")
+    return make_house(ep.house_seed, ep.house_n_rooms)
+
+
 def goal_image(env: HouseEnv, ep: Episode):
     """Re-render an episode's goal image (a :class:`Frame`)."""
     return env.renderer.render(np.asarray(ep.goal_viewmat), np.asarray(ep.goal_K), ep.goal_width, ep.goal_height,

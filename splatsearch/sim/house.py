@@ -397,8 +397,9 @@ def make_house(seed: int, n_rooms: int | None = None, *, objects_per_room: tuple
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     rng = np.random.default_rng([int(seed), GENERATOR_VERSION])
+    drawn = int(rng.integers(3, 9))  # always drawn, so make_house(s) == make_house(s, its own n_rooms)
     if n_rooms is None:
-        n_rooms = int(rng.integers(3, 9))
+        n_rooms = drawn
     if isinstance(n_rooms, bool) or not isinstance(n_rooms, (int, np.integer)) or not 3 <= n_rooms <= 8:
         raise ValueError(f"n_rooms must be an integer in 3..8, got {n_rooms!r}")
     lo, hi = objects_per_room
