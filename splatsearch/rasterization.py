@@ -353,8 +353,19 @@ def rasterize(
     _check_camera(viewmats, Ks, width, height)
 
     cfg = _Cfg(width, height, float(near_plane), float(far_plane), float(eps2d), bool(validate))
+    image, depth, alpha, radii, n_isect = _render_cameras(cfg, render_mode, batched, means, quats, scales, opacities,
+                                                          colors, viewmats, Ks, backgrounds)
+    meta = {"radii": radii, "n_isect": n_isect, "width": width, "height": height, "tile_size": _pl.TILE_SIZE}
+    return RasterOutput(image, depth, alpha, meta)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _render_cameras(cfg: _Cfg, render_mode: str, batched: bool, means, quats, scales, opacities, colors, viewmats,
+                    Ks, backgrounds):
+    """All cameras of one call. Jitted so that eager callers run compiled code (a bare FFI call
+    outside jit is re-lowered on every call); under an outer jit it is simply inlined."""
     images, depths_, alphas, radii, n_isects = [], [], [], [], []
-    for b in range(B):
+    for b in range(viewmats.shape[0]):
         img, dep, alp, rad, nis = _core(cfg, means, quats, scales, opacities, colors, viewmats[b], Ks[b])
         if backgrounds is not None:
             img = img + (1.0 - alp) * backgrounds[b]
@@ -371,6 +382,4 @@ def rasterize(
 
     image = pick(images) if "RGB" in render_mode else None
     depth = pick(depths_) if "D" in render_mode else None
-    meta = {"radii": pick(radii), "n_isect": pick(n_isects), "width": width, "height": height,
-            "tile_size": _pl.TILE_SIZE}
-    return RasterOutput(image, depth, pick(alphas), meta)
+    return image, depth, pick(alphas), pick(radii), pick(n_isects)

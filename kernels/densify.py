@@ -1,0 +1,139 @@
+"""Densification (thesis eq 10, SplaTAM): new Gaussians where the map is missing or behind.
+
+On a grid of every ``stride``-th pixel with valid observed depth, the mask is
+
+    alpha < tau_o  OR  (D_obs < D_hat AND |D_obs - D_hat| > k * median |D_obs - D_hat|)
+
+Each masked pixel becomes one Gaussian at the back-projected depth (pixel centre, +0.5) under
+the camera pose, with the pixel's colour, scale ``z / f`` (one pixel; f = (fx + fy) / 2), unit
+quaternion and opacity 0.5. Two launches and a scan, with one host read of the count; the same
+kernels run on CPU and CUDA.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def densify_mask_kernel(
+    depth_obs: wp.array(dtype=float),
+    alpha: wp.array(dtype=float),
+    depth_hat: wp.array(dtype=float),
+    width: int,
+    height: int,
+    stride: int,
+    grid_w: int,
+    tau_o: float,
+    err_thresh: float,
+    mask: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    px = (i % grid_w) * stride
+    py = (i // grid_w) * stride
+    m = int(0)
+    if px < width and py < height:
+        pix = py * width + px
+        z = depth_obs[pix]
+        if z > 0.0:
+            dh = depth_hat[pix]
+            if alpha[pix] < tau_o or (z < dh and wp.abs(z - dh) > err_thresh):
+                m = 1
+    mask[i] = m
+
+
+@wp.kernel
+def densify_write_kernel(
+    mask: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    depth_obs: wp.array(dtype=float),
+    rgb: wp.array(dtype=wp.vec3),
+    c2w: wp.mat44,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    stride: int,
+    grid_w: int,
+    means: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    log_scales: wp.array(dtype=float),
+):
+    i = wp.tid()
+    if mask[i] == 0:
+        return
+    k = offsets[i] - 1  # inclusive scan
+    px = (i % grid_w) * stride
+    py = (i // grid_w) * stride
+    pix = py * width + px
+    z = depth_obs[pix]
+    pc = wp.vec4((float(px) + 0.5 - cx) / fx * z, (float(py) + 0.5 - cy) / fy * z, z, 1.0)
+    pw = c2w * pc
+    means[k] = wp.vec3(pw[0], pw[1], pw[2])
+    colors[k] = rgb[pix]
+    log_scales[k] = wp.log(z / (0.5 * (fx + fy)))
+
+
+def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb: np.ndarray, viewmat: np.ndarray,
+            K: np.ndarray, *, tau_o: float = 0.5, k: float = 50.0, stride: int = 1, device: str = "cpu") -> dict:
+    """New Gaussians for one frame (eq 10).
+
+    Args:
+        depth_obs: (H, W) observed depth, metres, 0 = invalid.
+        alpha: (H, W) rendered silhouette of the current map.
+        depth_hat: (H, W) rendered depth D of the current map, metres.
+        rgb: (H, W, 3) observed colours in [0, 1].
+        viewmat: (4, 4) world-to-camera pose of the frame; K: (3, 3) intrinsics.
+        tau_o, k: silhouette threshold and depth-error factor (SplaTAM: 0.5, 50).
+        stride: use every stride-th pixel in x and y.
+
+    Returns:
+        dict of numpy arrays: means (n, 3), colors (n, 3), log_scales (n, 3), quats (n, 4),
+        opacity_logits (n,), and ``mask`` (H, W) bool of the pixels that spawned a Gaussian.
+    """
+    depth_obs = np.ascontiguousarray(depth_obs, np.float32)
+    H, W = depth_obs.shape
+    for name, a, shape in (("alpha", alpha, (H, W)), ("depth_hat", depth_hat, (H, W)), ("rgb", rgb, (H, W, 3))):
+        if np.shape(a) != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {np.shape(a)}")
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    valid = depth_obs > 0
+    err = np.abs(depth_obs - np.asarray(depth_hat, np.float32))[valid]
+    thresh = float(k * np.median(err)) if err.size else np.inf
+    gw, gh = (W + stride - 1) // stride, (H + stride - 1) // stride
+    n_grid = gw * gh
+    dev = wp.get_device(device)
+    arr = lambda a, dt: wp.array(np.ascontiguousarray(a, np.float32).reshape(-1, *( (3,) if dt is wp.vec3 else ())), dtype=dt, device=dev)  # noqa: E731
+    d_obs = arr(depth_obs, float)
+    mask = wp.empty(n_grid, dtype=wp.int32, device=dev)
+    wp.launch(densify_mask_kernel, dim=n_grid,
+              inputs=[d_obs, arr(alpha, float), arr(depth_hat, float), W, H, stride, gw, float(tau_o), thresh],
+              outputs=[mask], device=dev)
+    offsets = wp.empty(n_grid, dtype=wp.int32, device=dev)
+    wp.utils.array_scan(mask, offsets, inclusive=True)
+    n = int(offsets[n_grid - 1:n_grid].numpy()[0])
+    means = wp.empty(max(n, 1), dtype=wp.vec3, device=dev)
+    colors = wp.empty(max(n, 1), dtype=wp.vec3, device=dev)
+    log_s = wp.empty(max(n, 1), dtype=float, device=dev)
+    c2w = np.linalg.inv(np.asarray(viewmat, np.float64)).astype(np.float32)
+    K = np.asarray(K, np.float64)
+    if n:
+        wp.launch(densify_write_kernel, dim=n_grid,
+                  inputs=[mask, offsets, d_obs, arr(rgb, wp.vec3), wp.mat44(*c2w.ravel()), float(K[0, 0]),
+                          float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), W, stride, gw],
+                  outputs=[means, colors, log_s], device=dev)
+    m = mask.numpy().reshape(gh, gw).astype(bool)
+    full = np.zeros((H, W), bool)
+    full[::stride, ::stride] = m
+    quats = np.zeros((n, 4), np.float32)
+    quats[:, 0] = 1
+    return {
+        "means": means.numpy()[:n].copy(), "colors": colors.numpy()[:n].copy(),
+        "log_scales": np.repeat(log_s.numpy()[:n, None], 3, 1), "quats": quats,
+        "opacity_logits": np.zeros(n, np.float32), "mask": full,
+    }
