@@ -4,6 +4,8 @@ backward) and their host-side orchestration. The same kernels run on ``cpu`` and
 import warp as _wp
 
 _wp.config.quiet = True
+# per-module "load on device" timings are Warp's INFO logs: too chatty for a library's users
+_wp.config.log_level = getattr(_wp, "LOG_WARNING", _wp.config.log_level)
 
 from .parallel import cpu_threads, launch_split, run_bands  # noqa: E402
 from .pipeline import (  # noqa: E402

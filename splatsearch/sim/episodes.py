@@ -16,8 +16,6 @@ from the start to those viewpoints, and ``SPL = S * d* / max(d*, p)``.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -66,19 +64,11 @@ class Episode:
 
 def save_episodes(episodes: list[Episode], path: str) -> None:
     """Write episodes as JSON, atomically (temporary file, then rename)."""
+    from splatsearch.io import atomic_write_bytes
+
     data = json.dumps({"format": "splatsearch-iin-episodes", "version": 1,
                        "episodes": [e.to_json() for e in episodes]}, indent=1)
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".json")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(path, data.encode())
 
 
 def load_episodes(path: str) -> list[Episode]:

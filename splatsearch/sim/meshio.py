@@ -16,29 +16,16 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 
 import numpy as np
 import trimesh
+
+from splatsearch.io import atomic_write_bytes
 
 from .house import CLASS_IDS, GENERATOR_VERSION, STRUCTURE_CLASSES, House, Room, SceneObject
 from .materials import VERTEX_COLOR, MaterialTable
 
 _NAME = re.compile(r"^inst(\d+)_([a-z_]+)")
-
-
-def _atomic_write(path: str, data: bytes) -> None:
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=os.path.splitext(path)[1])
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def save_house(house: House, path: str) -> None:
@@ -71,7 +58,7 @@ def save_house(house: House, path: str) -> None:
         "rooms": [vars(r) for r in house.rooms], "objects": [o.to_json() for o in house.objects],
         "doors": [list(d) for d in house.doors], "instances": per_inst,
     }
-    _atomic_write(path, scene.export(file_type="glb"))
+    atomic_write_bytes(path, scene.export(file_type="glb"))
 
 
 def load_house(path: str, *, names: dict | None = None, face_instance: np.ndarray | None = None,

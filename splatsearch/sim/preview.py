@@ -7,6 +7,8 @@ import os
 import cv2
 import numpy as np
 
+from splatsearch.io import atomic_write_bytes
+
 from .env import HouseEnv, camera_viewmat
 from .house import House
 
@@ -78,8 +80,5 @@ def write_preview(house: House, out_dir: str, seed: int = 0, n_frames: int = 4) 
         ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))
         if not ok:
             raise RuntimeError(f"PNG encoding failed for {path}")
-        tmp = path + ".tmp"
-        with open(tmp, "wb") as f:
-            f.write(buf.tobytes())
-        os.replace(tmp, path)
+        atomic_write_bytes(path, buf.tobytes())
     return paths
