@@ -1,0 +1,40 @@
+"""The command-line entry points, run in-process on small inputs."""
+
+import json
+
+from splatsearch import sim
+from splatsearch.cli import main
+
+
+def test_sim_preview_episodes_export(tmp_path):
+    assert main(["sim", "preview", "--seed", "2", "--out", str(tmp_path / "prev")]) == 0
+    assert (tmp_path / "prev" / "house_map.png").stat().st_size > 1000
+    assert (tmp_path / "prev" / "house_frames.png").stat().st_size > 1000
+    ep = tmp_path / "eps.json"
+    assert main(["sim", "episodes", "--seed", "2", "--n", "2", "--split", "val-hard", "--out", str(ep)]) == 0
+    eps = sim.load_episodes(str(ep))
+    assert len(eps) == 2 and all(e.split == "val-hard" for e in eps)
+    glb = tmp_path / "h.glb"
+    assert main(["sim", "export", "--seed", "2", "--out", str(glb)]) == 0
+    assert len(sim.load_house(str(glb)).faces) == len(sim.make_house(2).faces)
+
+
+def test_bad_arguments_exit_with_code_2(tmp_path, capsys):
+    assert main(["sim", "preview", "--rooms", "0", "--out", str(tmp_path)]) == 2
+    assert "n_rooms" in capsys.readouterr().err
+
+
+def test_map_command_writes_map_and_summary(tmp_path):
+    out = tmp_path / "map"
+    rc = main(["map", "--seed", "1", "--frames", "5", "--width", "64", "--height", "48", "--iters", "3",
+               "--holdout-every", "4", "--out", str(out)])
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_mapped"] == 4 and summary["held_out"]["n"] == 1
+    assert summary["train"]["psnr"] > 10
+    assert (out / "map.ply").stat().st_size > 100 and (out / "map.npz").exists()
+
+
+def test_bench_small_scene(capsys):
+    assert main(["bench", "--scene", "small", "--repeats", "1"]) == 0
+    assert "random 10k" in capsys.readouterr().out
