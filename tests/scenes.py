@@ -4,26 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from splatsearch.bench import look_at  # noqa: F401  (re-exported for the tests)
+
 W, H = 70, 50  # deliberately not multiples of the 16-px tile
 
 
 def intrinsics(width: int = W, height: int = H, f: float = 60.0) -> np.ndarray:
     return np.array([[f, 0, width / 2 + 0.3], [0, f * 1.05, height / 2 - 0.2], [0, 0, 1]], np.float32)
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """World-to-camera 4x4 (OpenCV: x right, y down, z forward)."""
-    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    vm = np.eye(4)
-    vm[:3, :3] = R
-    vm[:3, 3] = -R @ eye
-    return vm.astype(np.float32)
 
 
 def camera():
