@@ -119,9 +119,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
                else None, "train": tr, "held_out": ho, "iters_per_frame": cfg.iters, "resolution": [W, H]}
     io.atomic_write_bytes(os.path.join(args.out, "summary.json"), json.dumps(summary, indent=1).encode())
     console.print(f"mapped {len(times)} frames, {n_ply:,} Gaussians, median {summary['median_s_per_frame']:.2f} s/frame")
-    console.print(f"training views: PSNR {tr['psnr']:.2f} dB, SSIM {tr['ssim']:.3f}, depth L1 {100 * tr['depth_l1']:.2f} cm")
-    if ho:
-        console.print(f"held-out views: PSNR {ho['psnr']:.2f} dB, SSIM {ho['ssim']:.3f}, depth L1 {100 * ho['depth_l1']:.2f} cm")
+    for label, ev in (("training views", tr), ("held-out views", ho)):
+        if ev:
+            console.print(f"{label}: PSNR {ev['psnr']:.2f} dB ({ev['psnr_valid']:.2f} dB where depth is valid), "
+                          f"SSIM {ev['ssim']:.3f}, depth L1 {100 * ev['depth_l1']:.2f} cm")
     console.print(f"wrote {args.out}/map.ply, map.npz, summary.json")
     return 0
 

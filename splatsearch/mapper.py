@@ -185,16 +185,18 @@ class Mapper:
                 "loss": self.last_loss}
 
     def evaluate(self, frames) -> dict:
-        """Mean PSNR (dB), SSIM and depth L1 (m, valid pixels) of the map over ``frames``."""
-        ps, ss, dl = [], [], []
+        """Mean PSNR (dB, all pixels), ``psnr_valid`` (dB, pixels with valid observed depth: beyond
+        the sensor range nothing can be mapped), SSIM and depth L1 (m, valid pixels) over ``frames``."""
+        ps, pv, ss, dl = [], [], [], []
         for f in frames:
             img, dep, _ = render_map(self.map, f.viewmat, self.K, self.W, self.H)
             valid = (np.asarray(f.depth) > 0)[..., None]
             ps.append(float(psnr(img, f.rgb)))
+            pv.append(float(psnr(img, f.rgb, valid)))
             ss.append(float(ssim(img, jnp.asarray(f.rgb))))
             dl.append(float(l1(dep, np.asarray(f.depth)[..., None], valid)))
-        return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "depth_l1": float(np.mean(dl)),
-                "n": len(ps)}
+        return {"psnr": float(np.mean(ps)), "psnr_valid": float(np.mean(pv)), "ssim": float(np.mean(ss)),
+                "depth_l1": float(np.mean(dl)), "n": len(ps)}
 
 
 # --------------------------------------------------------------------------------------------
