@@ -24,6 +24,25 @@ from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 #: slack on the log-cutoff so that float rounding never skips a pixel whose alpha reaches 1/255
 SIGMA_SLACK = wp.constant(1.0e-3)
 
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
+
+
+@wp.func
+def gauss_sigma(cn: wp.vec3, dx: float, dy: float) -> float:
+    """sigma = 0.5 (a dx^2 + c dy^2) + b dx dy for conic (a, b, c) and d = mean2d - pixel."""
+    return 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+
+
+@wp.func
+def alpha_grads(cn: wp.vec3, o: float, vis: float, v_a: float, dx: float, dy: float) -> vec6:
+    """Adjoint of alpha = min(0.999, o exp(-sigma)) for the cotangent v_a: (v_conic a, b, c,
+    v_mean2d x, y, v_opacity); zero where the 0.999 clamp is active."""
+    if o * vis > ALPHA_MAX:
+        return vec6()
+    v_sigma = -o * vis * v_a
+    return vec6(0.5 * v_sigma * dx * dx, v_sigma * dx * dy, 0.5 * v_sigma * dy * dy,
+                v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy), vis * v_a)
+
 
 @functools.cache
 def composite_kernels(C: int):
@@ -66,7 +85,7 @@ def composite_kernels(C: int):
             cn = conics[g]
             dx = m[0] - fx
             dy = m[1] - fy
-            sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+            sigma = gauss_sigma(cn, dx, dy)
             if sigma < 0.0:
                 continue
             alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-sigma))
@@ -133,7 +152,7 @@ def composite_kernels(C: int):
             cn = conics[g]
             dx = m[0] - fx
             dy = m[1] - fy
-            sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+            sigma = gauss_sigma(cn, dx, dy)
             if sigma < 0.0:
                 continue
             o = opacities[g]
@@ -151,11 +170,10 @@ def composite_kernels(C: int):
             v_a = wp.dot(c * T - buf * ra, vc) + (d * T - bufd * ra) * vd + T_final * ra * va
             buf = buf + c * fac
             bufd = bufd + d * fac
-            if o * vis <= ALPHA_MAX:
-                v_sigma = -o * vis * v_a
-                wp.atomic_add(v_conics, g, wp.vec3(0.5 * v_sigma * dx * dx, v_sigma * dx * dy, 0.5 * v_sigma * dy * dy))
-                wp.atomic_add(v_means2d, g, wp.vec2(v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy)))
-                wp.atomic_add(v_opacities, g, vis * v_a)
+            gr = alpha_grads(cn, o, vis, v_a, dx, dy)
+            wp.atomic_add(v_conics, g, wp.vec3(gr[0], gr[1], gr[2]))
+            wp.atomic_add(v_means2d, g, wp.vec2(gr[3], gr[4]))
+            wp.atomic_add(v_opacities, g, gr[5])
 
     @wp.kernel(module="unique", enable_backward=False)
     def composite_count(
@@ -185,7 +203,7 @@ def composite_kernels(C: int):
             cn = conics[g]
             dx = m[0] - fx
             dy = m[1] - fy
-            sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+            sigma = gauss_sigma(cn, dx, dy)
             if sigma < 0.0:
                 continue
             alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-sigma))
@@ -308,7 +326,7 @@ def composite_tile_kernels(C: int):
                     if done[pix] != 0:
                         continue
                     dx = m[0] - (float(px) + 0.5)
-                    sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+                    sigma = gauss_sigma(cn, dx, dy)
                     if sigma < 0.0 or sigma > tcut:
                         continue
                     alpha = wp.min(ALPHA_MAX, o * wp.exp(-sigma))
@@ -395,7 +413,7 @@ def composite_tile_kernels(C: int):
                     if j > out_last[pix]:
                         continue
                     dx = m[0] - (float(px) + 0.5)
-                    sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+                    sigma = gauss_sigma(cn, dx, dy)
                     if sigma < 0.0 or sigma > tcut:
                         continue
                     vis = wp.exp(-sigma)
@@ -416,11 +434,10 @@ def composite_tile_kernels(C: int):
                     v_a = wp.dot(c * T - buf * ra, vc) + (d * T - bufd * ra) * vd + out_T[pix] * ra * v_alpha[pix]
                     s_buf[pix] = buf + c * fac
                     s_bufd[pix] = bufd + d * fac
-                    if o * vis <= ALPHA_MAX:
-                        v_sigma = -o * vis * v_a
-                        g_cn = g_cn + wp.vec3(0.5 * v_sigma * dx * dx, v_sigma * dx * dy, 0.5 * v_sigma * dy * dy)
-                        g_m = g_m + wp.vec2(v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy))
-                        g_o = g_o + vis * v_a
+                    gr = alpha_grads(cn, o, vis, v_a, dx, dy)
+                    g_cn = g_cn + wp.vec3(gr[0], gr[1], gr[2])
+                    g_m = g_m + wp.vec2(gr[3], gr[4])
+                    g_o = g_o + gr[5]
             if hit != 0:
                 wp.atomic_add(v_colors, g, g_c)
                 wp.atomic_add(v_depths, g, g_d)

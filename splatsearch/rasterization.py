@@ -215,7 +215,7 @@ def _check_values(name: str, x, *, nonneg: bool = False, unit: bool = False) -> 
         raise ValueError(f"{name} must lie in [0, 1] (got range [{a.min():g}, {a.max():g}])")
 
 
-def _check_camera(viewmat, K, width: int, height: int) -> None:
+def _check_camera(viewmat, K) -> None:
     if _is_concrete(viewmat):
         v = np.asarray(viewmat)
         if not np.all(np.isfinite(v)):
@@ -350,7 +350,7 @@ def rasterize(
     _check_values("scales", scales, nonneg=True)
     _check_values("opacities", opacities, unit=True)
     _check_values("colors", colors)
-    _check_camera(viewmats, Ks, width, height)
+    _check_camera(viewmats, Ks)
 
     cfg = _Cfg(width, height, float(near_plane), float(far_plane), float(eps2d), bool(validate))
     image, depth, alpha, radii, n_isect = _render_cameras(cfg, render_mode, batched, means, quats, scales, opacities,

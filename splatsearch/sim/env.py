@@ -110,8 +110,8 @@ class HouseEnv:
         self.sensor_noise = sensor_noise
         self.odometry_noise = odometry_noise or OdometryNoise()
         self.max_steps = int(max_steps)
-        self.nav = navgrid if navgrid is not None else build_navgrid(house)
         self.renderer = renderer if renderer is not None else HouseRenderer(house)
+        self.nav = navgrid if navgrid is not None else build_navgrid(house, mesh=self.renderer.mesh)
         self.rng = np.random.default_rng(seed)
         self.seed = int(seed)
         self.s = _State()

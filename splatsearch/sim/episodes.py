@@ -15,10 +15,12 @@ from the start to those viewpoints, and ``SPL = S * d* / max(d*, p)``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import warp as wp
 
 from .env import CAMERA_HEIGHT, HouseEnv, intrinsics, look_at_viewmat
 from .house import GENERATOR_VERSION, GOAL_CLASSES, House, SceneObject
@@ -55,8 +57,7 @@ class Episode:
 
     @classmethod
     def from_json(cls, d: dict) -> Episode:
-        missing = [k for k in cls.__dataclass_fields__ if k not in d and cls.__dataclass_fields__[k].default is
-                   cls.__dataclass_fields__[k].default_factory]
+        missing = [f.name for f in dataclasses.fields(cls) if f.name not in d and f.default is dataclasses.MISSING]
         if missing:
             raise ValueError(f"episode JSON is missing fields: {missing}")
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
@@ -131,50 +132,30 @@ def _visible_fraction(env: HouseEnv, viewmat, obj: SceneObject, K, w, h) -> floa
     return float((f.instance == obj.instance_id).mean())
 
 
+@wp.kernel(enable_backward=False)
+def _probe_kernel(mesh: wp.uint64, o: wp.vec3, dirs: wp.array(dtype=wp.vec3), dist: wp.array(dtype=float)):
+    i = wp.tid()
+    q = wp.mesh_query_ray(mesh, o, dirs[i], 1.0e4)
+    dist[i] = wp.inf
+    if q.result:
+        if wp.dot(q.normal, dirs[i]) > 0.0:
+            dist[i] = -1.0  # a back face: the point is inside a closed object
+        else:
+            dist[i] = q.t
+
+
+_PROBE_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32)
+
+
 def _free_point(env: HouseEnv, p: np.ndarray, clearance: float = 0.15) -> bool:
-    """True if a camera at p is inside the house, not inside geometry (probe rays all ways)."""
-    import warp as wp
-
-    rend = env.renderer
-    dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32)
-    hits = _probe(rend.mesh.id, p.astype(np.float32), dirs)
-    if np.any(hits < clearance) or np.any(~np.isfinite(hits)):
-        return False
-    return bool(wp is not None)
-
-
-def _probe(mesh_id, origin, dirs) -> np.ndarray:
-    import warp as wp
-
-    out = wp.zeros(len(dirs), dtype=float)
-    wp.launch(_probe_kernel(), dim=len(dirs), inputs=[mesh_id, wp.vec3(*origin), wp.array(dirs, dtype=wp.vec3)],
-              outputs=[out])
-    return out.numpy()
-
-
-_PROBE = None
-
-
-def _probe_kernel():
-    global _PROBE
-    if _PROBE is None:
-        import warp as wp
-
-        @wp.kernel(enable_backward=False)
-        def probe(mesh: wp.uint64, o: wp.vec3, dirs: wp.array(dtype=wp.vec3), dist: wp.array(dtype=float)):
-            i = wp.tid()
-            q = wp.mesh_query_ray(mesh, o, dirs[i], 1.0e4)
-            if q.result:
-                # a back-face hit means the point is inside a closed object
-                if wp.dot(q.normal, dirs[i]) > 0.0:
-                    dist[i] = -1.0
-                else:
-                    dist[i] = q.t
-            else:
-                dist[i] = wp.inf
-
-        _PROBE = probe
-    return _PROBE
+    """True if a camera at p is inside the house, not inside geometry, and ``clearance`` m from
+    it along the six axis directions."""
+    dist = wp.zeros(len(_PROBE_DIRS), dtype=float)
+    wp.launch(_probe_kernel, dim=len(_PROBE_DIRS),
+              inputs=[env.renderer.mesh.id, wp.vec3(*p.astype(np.float32)), wp.array(_PROBE_DIRS, dtype=wp.vec3)],
+              outputs=[dist])
+    hits = dist.numpy()
+    return bool(np.all(np.isfinite(hits)) and np.all(hits >= clearance))
 
 
 def sample_goal_camera(env: HouseEnv, obj: SceneObject, split: str, rng: np.random.Generator,

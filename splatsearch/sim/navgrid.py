@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import skfmm
+import warp as wp
 from scipy import ndimage
 
 from .house import House
@@ -111,12 +112,13 @@ def _clip_band(tri: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 
 def build_navgrid(house: House, cell_size: float = 0.05, agent_radius: float = AGENT_RADIUS,
-                  agent_height: float = AGENT_HEIGHT, margin: float = 0.5) -> NavGrid:
+                  agent_height: float = AGENT_HEIGHT, margin: float = 0.5, mesh: wp.Mesh | None = None) -> NavGrid:
     """Rasterise the house's geometry into a navigable grid.
 
     Obstacles are triangles (clipped to the band ``OBSTACLE_MIN_Z .. agent_height``) projected
     onto the floor; floor is where a downward ray from 0.3 m hits a surface below 5 cm. Works for
-    any mesh in the house format, not only generated houses.
+    any mesh in the house format, not only generated houses. ``mesh``: the house's ``wp.Mesh`` if
+    one exists already (e.g. ``HouseRenderer.mesh``), to avoid building a second BVH.
     """
     if cell_size <= 0 or agent_radius < 0:
         raise ValueError("cell_size must be > 0 and agent_radius >= 0")
@@ -139,7 +141,7 @@ def build_navgrid(house: House, cell_size: float = 0.05, agent_radius: float = A
         cv2.fillPoly(obstacle, [pts], 1, lineType=cv2.LINE_8, shift=shift)
         cv2.polylines(obstacle, [pts], True, 1, lineType=cv2.LINE_8, shift=shift)
     obstacle = obstacle.astype(bool)
-    floor = _floor_mask(house, origin, cell_size, (H, W))
+    floor = _floor_mask(house, origin, cell_size, (H, W), mesh)
     dist = ndimage.distance_transform_edt(~obstacle) * cell_size
     nav = floor & ~obstacle & (dist > agent_radius)
     lab, n = ndimage.label(nav)
@@ -150,35 +152,25 @@ def build_navgrid(house: House, cell_size: float = 0.05, agent_radius: float = A
     return NavGrid(nav, floor, obstacle, origin, float(cell_size), float(agent_radius))
 
 
-def _floor_mask(house: House, origin, cell_size, shape) -> np.ndarray:
-    import warp as wp
+@wp.kernel(enable_backward=False)
+def _down_kernel(mesh: wp.uint64, pts: wp.array(dtype=wp.vec3), hit_z: wp.array(dtype=float)):
+    i = wp.tid()
+    q = wp.mesh_query_ray(mesh, pts[i], wp.vec3(0.0, 0.0, -1.0), 1.0)
+    hit_z[i] = 1.0e9
+    if q.result:
+        hit_z[i] = pts[i][2] - q.t
 
+
+def _floor_mask(house: House, origin, cell_size, shape, mesh: wp.Mesh | None) -> np.ndarray:
     H, W = shape
     cols, rows = np.meshgrid(np.arange(W), np.arange(H))
     xs = origin[0] + (cols + 0.5) * cell_size
     ys = origin[1] + (rows + 0.5) * cell_size
     pts = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.3)], -1).astype(np.float32)
-    mesh = wp.Mesh(points=wp.array(house.vertices.astype(np.float32), dtype=wp.vec3),
-                   indices=wp.array(house.faces.astype(np.int32).ravel(), dtype=wp.int32))
-    hit_z = wp.zeros(len(pts), dtype=float)
-    wp.launch(_down_kernel, dim=len(pts), inputs=[mesh.id, wp.array(pts, dtype=wp.vec3)], outputs=[hit_z])
-    z = hit_z.numpy().reshape(H, W)
-    return z < 0.05
-
-
-def _make_down_kernel():
-    import warp as wp
-
-    @wp.kernel(enable_backward=False)
-    def down(mesh: wp.uint64, pts: wp.array(dtype=wp.vec3), hit_z: wp.array(dtype=float)):
-        i = wp.tid()
-        q = wp.mesh_query_ray(mesh, pts[i], wp.vec3(0.0, 0.0, -1.0), 1.0)
-        if q.result:
-            hit_z[i] = pts[i][2] - q.t
-        else:
-            hit_z[i] = 1.0e9
-
-    return down
-
-
-_down_kernel = _make_down_kernel()
+    if mesh is None:
+        mesh = wp.Mesh(points=wp.array(house.vertices.astype(np.float32), dtype=wp.vec3),
+                       indices=wp.array(house.faces.astype(np.int32).ravel(), dtype=wp.int32))
+    hit_z = wp.zeros(len(pts), dtype=float, device=mesh.device)
+    wp.launch(_down_kernel, dim=len(pts), inputs=[mesh.id, wp.array(pts, dtype=wp.vec3, device=mesh.device)],
+              outputs=[hit_z], device=mesh.device)
+    return hit_z.numpy().reshape(H, W) < 0.05

@@ -22,6 +22,7 @@ from .materials import VERTEX_COLOR
 wp.set_module_options({"enable_backward": False})
 
 AMBIENT = wp.constant(0.35)
+VERTEX_COLOR_ID = wp.constant(VERTEX_COLOR)
 
 
 @wp.func
@@ -110,7 +111,7 @@ def raycast_kernel(
         n = -n
     m = face_material[f]
     col = wp.vec3(0.0, 0.0, 0.0)
-    if m == -1:
+    if m == VERTEX_COLOR_ID:
         i0 = faces[3 * f]
         i1 = faces[3 * f + 1]
         i2 = faces[3 * f + 2]
@@ -189,7 +190,6 @@ class HouseRenderer:
             mat_seed=wp.array(pad(mats["seed"], (n_mat,)), dtype=wp.int32, device=dev),
         )
         self._out: dict[tuple[int, int], tuple] = {}
-        assert VERTEX_COLOR == -1
 
     def render(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, *, max_depth: float = 5.0,
                noise: SensorNoise | None = None, noise_seed: int = 0) -> Frame:
