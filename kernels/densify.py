@@ -5,8 +5,9 @@ On a grid of every ``stride``-th pixel with valid observed depth, the mask is
     alpha < tau_o  OR  (D_obs < D_hat AND |D_obs - D_hat| > k * median |D_obs - D_hat|)
 
 Each masked pixel becomes one Gaussian at the back-projected depth (pixel centre, +0.5) under
-the camera pose, with the pixel's colour, scale ``z / f`` (one pixel; f = (fx + fy) / 2), unit
-quaternion and opacity 0.5. Two launches and a scan, with one host read of the count; the same
+the camera pose, with the pixel's colour, scale ``pixel_scale * z / f`` (f = (fx + fy) / 2), unit
+quaternion and opacity 0.5. ``pixel_scale = 1`` is SplaTAM's one-pixel footprint; the mapper
+passes the stride, so that a Gaussian spawned for a stride x stride block covers its block. Two launches and a scan, with one host read of the count; the same
 kernels run on CPU and CUDA.
 """
 
@@ -59,6 +60,7 @@ def densify_write_kernel(
     width: int,
     stride: int,
     grid_w: int,
+    pixel_scale: float,
     means: wp.array(dtype=wp.vec3),
     colors: wp.array(dtype=wp.vec3),
     log_scales: wp.array(dtype=float),
@@ -75,11 +77,12 @@ def densify_write_kernel(
     pw = c2w * pc
     means[k] = wp.vec3(pw[0], pw[1], pw[2])
     colors[k] = rgb[pix]
-    log_scales[k] = wp.log(z / (0.5 * (fx + fy)))
+    log_scales[k] = wp.log(pixel_scale * z / (0.5 * (fx + fy)))
 
 
 def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb: np.ndarray, viewmat: np.ndarray,
-            K: np.ndarray, *, tau_o: float = 0.5, k: float = 50.0, stride: int = 1, device: str = "cpu") -> dict:
+            K: np.ndarray, *, tau_o: float = 0.5, k: float = 50.0, stride: int = 1, pixel_scale: float = 1.0,
+            device: str = "cpu") -> dict:
     """New Gaussians for one frame (eq 10).
 
     Args:
@@ -90,6 +93,7 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
         viewmat: (4, 4) world-to-camera pose of the frame; K: (3, 3) intrinsics.
         tau_o, k: silhouette threshold and depth-error factor (SplaTAM: 0.5, 50).
         stride: use every stride-th pixel in x and y.
+        pixel_scale: new scales are ``pixel_scale * z / f`` metres (1: one pixel, as SplaTAM).
 
     Returns:
         dict of numpy arrays: means (n, 3), colors (n, 3), log_scales (n, 3), quats (n, 4),
@@ -102,6 +106,8 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
             raise ValueError(f"{name} must have shape {shape}, got {np.shape(a)}")
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
+    if not pixel_scale > 0:
+        raise ValueError(f"pixel_scale must be > 0, got {pixel_scale}")
     valid = depth_obs > 0
     err = np.abs(depth_obs - np.asarray(depth_hat, np.float32))[valid]
     thresh = float(k * np.median(err)) if err.size else np.inf
@@ -125,7 +131,7 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
     if n:
         wp.launch(densify_write_kernel, dim=n_grid,
                   inputs=[mask, offsets, d_obs, arr(rgb, wp.vec3), wp.mat44(*c2w.ravel()), float(K[0, 0]),
-                          float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), W, stride, gw],
+                          float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), W, stride, gw, float(pixel_scale)],
                   outputs=[means, colors, log_s], device=dev)
     m = mask.numpy().reshape(gh, gw).astype(bool)
     full = np.zeros((H, W), bool)

@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--width", type=int, default=320)
     m.add_argument("--height", type=int, default=240)
     m.add_argument("--iters", type=int, default=15, help="optimisation steps per frame")
-    m.add_argument("--stride", type=int, default=2, help="densify every stride-th pixel")
+    m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel")
     m.add_argument("--isotropic", action="store_true")
     m.add_argument("--holdout-every", type=int, default=8, help="hold out one frame in N for evaluation (0: none)")
     m.add_argument("--out", default="runs/map")

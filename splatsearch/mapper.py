@@ -4,8 +4,10 @@ For every frame with a known (or tracked) pose:
 
 1. render the map at the pose and densify where it is missing or behind (eq 10);
 2. every ``keyframe_every``-th frame becomes a keyframe; the window is the current frame plus
-   the last ``window - 1`` keyframes;
-3. run ``iters`` Adam steps, each on one random frame of the window, on the loss of eq 7-9;
+   ``window - 1`` keyframes: the latest one and those that see most of the current frame
+   (SplaTAM's overlap selection), or simply the latest ones (``window_select="recent"``);
+3. run ``iters`` Adam steps on the loss of eq 7-9: a share ``current_frac`` on the current frame
+   (its new regions are constrained by nothing else yet), the rest on random window frames;
 4. prune Gaussians that became transparent or oversized, compacting the survivors.
 
 The jitted step depends only on the capacity, which grows by doubling, so a whole run compiles
@@ -35,6 +37,8 @@ class MapperConfig:
     iters: int = 15
     window: int = 8
     keyframe_every: int = 5
+    window_select: str = "overlap"
+    current_frac: float = 0.34
     lr: dict = field(default_factory=lambda: {"means": 1e-3, "log_scales": 5e-3, "quats": 1e-3,
                                               "opacity_logits": 5e-2, "colors": 5e-3})
     lambda_p: float = 0.5
@@ -42,7 +46,7 @@ class MapperConfig:
     lambda_g: float = 1.0
     tau_o: float = 0.5
     k: float = 50.0
-    stride: int = 2
+    stride: int = 3
     prune_opacity: float = 0.005
     prune_scale: float = 0.5
     isotropic: bool = False
@@ -50,6 +54,10 @@ class MapperConfig:
     seed: int = 0
 
     def validate(self) -> None:
+        if self.window_select not in ("overlap", "recent"):
+            raise ValueError(f"window_select must be 'overlap' or 'recent', got {self.window_select!r}")
+        if not 0.0 <= self.current_frac <= 1.0:
+            raise ValueError(f"current_frac must be in [0, 1], got {self.current_frac}")
         if self.iters < 0 or self.window < 1 or self.keyframe_every < 1 or self.stride < 1:
             raise ValueError("iters >= 0, window >= 1, keyframe_every >= 1 and stride >= 1 are required")
         missing = {"means", "log_scales", "quats", "opacity_logits", "colors"} - set(self.lr)
@@ -159,8 +167,7 @@ class Mapper:
         new.pop("mask")
         self.map, self.opt_state, _ = append(self.map, self.opt_state, new)
         # 2. keyframes
-        window = self.keyframes[-(self.cfg.window - 1):] if self.cfg.window > 1 else []
-        window = window + [frame]
+        window = self._select_window(frame) + [frame]
         if self.n_frames % self.cfg.keyframe_every == 0:
             self.keyframes.append(frame)
         self.n_frames += 1
@@ -168,8 +175,13 @@ class Mapper:
         params, active = self.map.params(), self.map.active
         loss = jnp.nan
         dev = [self._device_frame(f) for f in window]
-        for _ in range(self.cfg.iters):
-            r, s, d, v = dev[int(self.rng.integers(0, len(dev)))]
+        # A new frame shows regions that no keyframe constrains yet; a uniform pick over the window
+        # would give it ~iters/window steps, so a fixed share of the steps goes to it.
+        n_cur = int(round(self.cfg.current_frac * self.cfg.iters))
+        picks = [len(dev) - 1] * n_cur + [int(i) for i in self.rng.integers(0, len(dev), self.cfg.iters - n_cur)]
+        self.rng.shuffle(picks)
+        for i in picks:
+            r, s, d, v = dev[i]
             params, self.opt_state, loss = self._step(params, active, self.opt_state, r, s, d, v)
         self.map = self.map.with_params(params)
         self.last_loss = float(loss)
@@ -184,6 +196,29 @@ class Mapper:
         return {"added": int(new["means"].shape[0]), "pruned": pruned, "n_gaussians": self.map.n_active,
                 "loss": self.last_loss}
 
+    def _select_window(self, frame: Frame) -> list[Frame]:
+        """Up to ``window - 1`` keyframes to optimise with ``frame``.
+
+        "recent" takes the latest keyframes. "overlap" (SplaTAM's choice) takes those that see the
+        most of the current frame's back-projected points, so regions revisited after a long
+        detour keep being constrained by their old views instead of drifting to fit the new one.
+        """
+        n = self.cfg.window - 1
+        if n <= 0 or not self.keyframes:
+            return []
+        if self.cfg.window_select == "recent" or len(self.keyframes) <= n:
+            return self.keyframes[-n:]
+        pts = _backproject(frame.depth, frame.viewmat, self.K, step=8)
+        if len(pts) == 0:
+            return self.keyframes[-n:]
+        score = np.array([_visible_fraction(pts, kf.viewmat, self.K, self.W, self.H) for kf in self.keyframes])
+        # the latest keyframe always joins: it shares the most recent optimiser context; ties in
+        # overlap go to the more recent keyframe
+        idx = np.arange(len(score))
+        order = [i for i in np.lexsort((-idx, -score)) if i != len(self.keyframes) - 1 and score[i] > 0]
+        chosen = sorted(order[: n - 1] + [len(self.keyframes) - 1])
+        return [self.keyframes[i] for i in chosen]
+
     def evaluate(self, frames) -> dict:
         """Mean PSNR (dB, all pixels), ``psnr_valid`` (dB, pixels with valid observed depth: beyond
         the sensor range nothing can be mapped), SSIM and depth L1 (m, valid pixels) over ``frames``."""
@@ -197,6 +232,28 @@ class Mapper:
             dl.append(float(l1(dep, np.asarray(f.depth)[..., None], valid)))
         return {"psnr": float(np.mean(ps)), "psnr_valid": float(np.mean(pv)), "ssim": float(np.mean(ss)),
                 "depth_l1": float(np.mean(dl)), "n": len(ps)}
+
+
+def _backproject(depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, step: int = 8) -> np.ndarray:
+    """World points (N, 3) of every ``step``-th pixel with valid depth."""
+    v, u = np.mgrid[step // 2:depth.shape[0]:step, step // 2:depth.shape[1]:step]
+    z = depth[v, u]
+    ok = z > 0
+    u, v, z = u[ok] + 0.5, v[ok] + 0.5, z[ok]
+    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
+    c2w = np.linalg.inv(viewmat.astype(np.float64))
+    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def _visible_fraction(pts: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> float:
+    """Fraction of world points ``pts`` (N, 3) inside a camera's image, in front of it."""
+    cam = pts @ viewmat[:3, :3].T.astype(np.float64) + viewmat[:3, 3]
+    z = cam[:, 2]
+    front = z > 0.05
+    zs = np.where(front, z, 1.0)
+    u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+    return float(np.mean(front & (u >= 0) & (u < width) & (v >= 0) & (v < height)))
 
 
 # --------------------------------------------------------------------------------------------

@@ -222,6 +222,30 @@ def test_tracking_reduces_pose_error():
     assert err(refined) < 0.5 * err(noisy), (err(noisy), err(refined))
 
 
+def test_overlap_window_picks_keyframes_that_see_the_frame():
+    from splatsearch.mapper import Frame
+    from splatsearch.sim.env import camera_viewmat, intrinsics
+
+    K = intrinsics(64, 48)
+    m = Mapper(K, 64, 48, MapperConfig(window=3, iters=0, initial_capacity=16))
+    depth = np.full((48, 64), 2.0, np.float32)
+    rgb = np.zeros((48, 64, 3), np.float32)
+    # keyframes 0 and 2 look along +x like the new frame; 1 and 3 look the other way
+    yaws = [0.0, np.pi, 0.1, np.pi]
+    m.keyframes = [Frame(rgb, depth, camera_viewmat(0, 0, y)) for y in yaws]
+    cur = Frame(rgb, depth, camera_viewmat(0.2, 0, 0.05))
+    chosen = m._select_window(cur)
+    # the latest keyframe always joins; the other slot goes to the best-overlapping one
+    assert [id(f) for f in chosen] == [id(m.keyframes[2]), id(m.keyframes[3])]
+    m.cfg.window_select = "recent"
+    assert [id(f) for f in m._select_window(cur)] == [id(m.keyframes[2]), id(m.keyframes[3])]
+    m.cfg.window = 4
+    m.cfg.window_select = "overlap"
+    assert [id(f) for f in m._select_window(cur)] == [id(m.keyframes[i]) for i in (0, 2, 3)]
+    with pytest.raises(ValueError, match="window_select"):
+        MapperConfig(window_select="nearest").validate()
+
+
 def test_bad_input_to_mapper():
     with pytest.raises(ValueError):
         Mapper(K8, 8, 6, MapperConfig(iters=-1))

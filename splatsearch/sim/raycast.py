@@ -2,9 +2,12 @@
 
 One ray per pixel through the pixel centre (+0.5), OpenCV camera frame, world-to-camera
 ``viewmat``. Colour: procedural material at the hit point (or interpolated vertex colours),
-shaded Lambert (a fixed sun direction plus a head light) plus ambient. Depth is the camera z of
-the hit in metres; 0 where nothing is hit or beyond ``max_depth``. Optional sensor noise: RGB
-Gaussian noise, depth noise growing with z^2 (structured-light style) and random dropouts.
+shaded Lambert under three fixed directional lights (a sun and two fills) plus ambient. The
+lighting is baked into the world, never tied to the camera, so a surface looks the same from
+every viewpoint, as in Habitat's HM3D scans (a head light would make colour view-dependent).
+Depth is the camera z of the hit in metres; 0 where nothing is hit or beyond ``max_depth``.
+Optional sensor noise: RGB Gaussian noise, depth noise growing with z^2 (structured-light style)
+and random dropouts.
 """
 
 from __future__ import annotations
@@ -119,7 +122,10 @@ def raycast_kernel(
     else:
         col = material_color(p, mat_a[m], mat_b[m], mat_pattern[m], mat_freq[m], mat_noise[m], mat_seed[m])
     sun = wp.normalize(wp.vec3(0.35, 0.25, 0.9))
-    shade = AMBIENT + (1.0 - AMBIENT) * (0.55 * wp.max(0.0, wp.dot(n, sun)) + 0.45 * wp.max(0.0, -wp.dot(n, d)))
+    fill_a = wp.normalize(wp.vec3(-0.8, -0.45, 0.4))
+    fill_b = wp.normalize(wp.vec3(0.5, -0.85, 0.2))
+    shade = AMBIENT + (1.0 - AMBIENT) * (0.5 * wp.max(0.0, wp.dot(n, sun)) + 0.35 * wp.max(0.0, wp.dot(n, fill_a))
+                                         + 0.3 * wp.max(0.0, wp.dot(n, fill_b)))
     col = col * shade
     z = q.t * inv_len
     if rgb_sigma > 0.0 or depth_k > 0.0 or dropout > 0.0:
