@@ -44,6 +44,54 @@ def alpha_grads(cn: wp.vec3, o: float, vis: float, v_a: float, dx: float, dy: fl
                 v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy), vis * v_a)
 
 
+@wp.kernel(enable_backward=False)
+def composite_top_id(
+    ranges: wp.array2d(dtype=wp.int32),
+    ids: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    width: int,
+    tile: int,
+    tiles_x: int,
+    pix0: int,
+    out_id: wp.array(dtype=wp.int32),
+    out_weight: wp.array(dtype=float),
+):
+    """Per pixel, the Gaussian with the largest compositing weight alpha * T (-1 if none): the
+    forward loop with the same skip and stop rules, keeping an argmax instead of a sum."""
+    pix = wp.tid() + pix0
+    px = pix % width
+    py = pix // width
+    t = (py // tile) * tiles_x + px // tile
+    fx = float(px) + 0.5
+    fy = float(py) + 0.5
+    T = float(1.0)
+    best = int(-1)
+    best_w = float(0.0)
+    for j in range(ranges[t, 0], ranges[t, 1]):
+        if T <= best_w:
+            break  # no later Gaussian can weigh more than the transmittance left
+        g = ids[j]
+        m = means2d[g]
+        sigma = gauss_sigma(conics[g], m[0] - fx, m[1] - fy)
+        if sigma < 0.0:
+            continue
+        alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-sigma))
+        if alpha < ALPHA_MIN:
+            continue
+        nT = T * (1.0 - alpha)
+        if nT <= T_MIN:
+            break
+        w = alpha * T
+        if w > best_w:
+            best_w = w
+            best = g
+        T = nT
+    out_id[pix] = best
+    out_weight[pix] = best_w
+
+
 @functools.cache
 def composite_kernels(C: int):
     """Return ``(forward, backward, count)`` Warp kernels for C colour channels."""

@@ -31,7 +31,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 from .binning import count_tiles_kernel, depth_keys_kernel, depth_rank_kernel, tile_ranges_kernel, write_keys_kernel
-from .composite import composite_kernels, composite_tile_kernels
+from .composite import composite_kernels, composite_tile_kernels, composite_top_id
 from .parallel import launch_split, n_threads_for, run_bands
 from .projection import project_bwd_kernel, project_fwd_kernel
 from .validate import FLAG_MESSAGES, N_FLAGS, validate_camera_kernel, validate_gaussians_kernel
@@ -403,6 +403,40 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
         launch_split(project_bwd_kernel, n, lambda i0, w: pre + [i0, w * per, per],
                      [v_means, v_quats, v_scales, vm_acc], device)
         wp.launch(_sum_rows_kernel, dim=16, inputs=[vm_acc, v_viewmat], device=device)
+
+
+def top_ids(means, quats, scales, opacities, viewmat, K, width: int, height: int, near: float, far: float,
+            eps2d: float, tile: int = TILE_SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the Gaussian with the largest compositing weight at every pixel.
+
+    Inputs as for :func:`rasterize_forward` (Warp arrays). Returns numpy ``(ids (H*W,) int32,
+    weights (H*W,) float32)``; id -1 where no Gaussian contributes. Not differentiable: it is
+    for lifting 2-D masks to the Gaussians behind them.
+    """
+    device = means.device
+    st = _device_state(device)
+    n = means.shape[0]
+    with st.ws.lock:
+        ws = st.ws
+        means2d = ws.get("tid_means2d", n, wp.vec2)
+        conics = ws.get("tid_conics", n, wp.vec3)
+        depths = ws.get("tid_depths", n, wp.float32)
+        radii = ws.get("tid_radii", n, wp.vec2i)
+        project(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
+                means2d, conics, depths, radii)
+        ranges, ids, _ = bin_gaussians(ws, means2d, conics, opacities, depths, radii, width, height, tile)
+        tiles_x, _ = grid_dims(width, height, tile)
+        out_id = wp.empty(width * height, dtype=wp.int32, device=device)
+        out_w = wp.empty(width * height, dtype=wp.float32, device=device)
+
+        def launch(_w, p0, p1):
+            wp.launch(composite_top_id, dim=p1 - p0,
+                      inputs=[ranges, ids, means2d, conics, opacities, width, tile, tiles_x, p0],
+                      outputs=[out_id, out_w], device=device)
+
+        n_threads = n_threads_for(device)
+        run_bands(_row_bands(width, height, tile, n_threads), n_threads, launch, composite_top_id, device)
+        return out_id.numpy().copy(), out_w.numpy().copy()
 
 
 def count_evaluations(means2d, conics, opacities, ranges, ids, width: int, height: int,

@@ -4,7 +4,7 @@ The rasterizer is the foundation: :func:`rasterize` renders Gaussians with Warp 
 or CUDA, under ``jax.jit`` and ``jax.grad``.
 """
 
-from splatsearch.rasterization import RENDER_MODES, RasterOutput, rasterize
+from splatsearch.rasterization import RENDER_MODES, RasterOutput, rasterize, rasterize_top_ids
 
 __version__ = "0.1.0"
-__all__ = ["RENDER_MODES", "RasterOutput", "rasterize", "__version__"]
+__all__ = ["RENDER_MODES", "RasterOutput", "rasterize", "rasterize_top_ids", "__version__"]

@@ -383,3 +383,63 @@ def _render_cameras(cfg: _Cfg, render_mode: str, batched: bool, means, quats, sc
     image = pick(images) if "RGB" in render_mode else None
     depth = pick(depths_) if "D" in render_mode else None
     return image, depth, pick(alphas), pick(radii), pick(n_isects)
+
+
+def rasterize_top_ids(
+    means: Any,
+    quats: Any,
+    scales: Any,
+    opacities: Any,
+    viewmat: Any,
+    K: Any,
+    width: int,
+    height: int,
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    return_weights: bool = False,
+):
+    """Per pixel, the index of the Gaussian that contributes most (largest alpha * T).
+
+    Same inputs and rules as :func:`rasterize` for one camera (means (N, 3), quats (N, 4) wxyz or
+    None, scales (N, 3) / (N,), opacities (N,), viewmat (4, 4), K (3, 3)). Used to lift 2-D
+    detection masks onto the Gaussians behind them; it is not differentiable and runs on the
+    host (numpy in, numpy out).
+
+    Returns:
+        (H, W) int32 indices into the input arrays, -1 where no Gaussian contributes; with
+        ``return_weights`` also the (H, W) float32 winning weights.
+    """
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {v!r}")
+    width, height = int(width), int(height)
+    means = np.asarray(means, np.float32)
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must have shape (N, 3), got {means.shape}")
+    N = means.shape[0]
+    scales = np.asarray(scales, np.float32)
+    if scales.shape in ((N,), (N, 1)):
+        scales = np.repeat(scales.reshape(N, 1), 3, 1)
+    if scales.shape != (N, 3):
+        raise ValueError(f"scales must have shape (N, 3), (N, 1) or (N,) with N={N}, got {scales.shape}")
+    quats = np.tile(np.float32([1, 0, 0, 0]), (N, 1)) if quats is None else np.asarray(quats, np.float32)
+    opacities = np.asarray(opacities, np.float32).reshape(-1)
+    viewmat = np.asarray(viewmat, np.float32)
+    K = np.asarray(K, np.float32)
+    if quats.shape != (N, 4) or opacities.shape != (N,) or viewmat.shape != (4, 4) or K.shape != (3, 3):
+        raise ValueError(f"expected quats ({N}, 4), opacities ({N},), viewmat (4, 4), K (3, 3); got "
+                         f"{quats.shape}, {opacities.shape}, {viewmat.shape}, {K.shape}")
+    for name, a in (("means", means), ("scales", scales), ("quats", quats), ("opacities", opacities),
+                    ("viewmat", viewmat), ("K", K)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} contains NaN or Inf")
+    device = "cuda" if jax.default_backend() == "gpu" and wp.is_cuda_available() else "cpu"
+    arr = functools.partial(wp.array, device=device)
+    ids, w = _pl.top_ids(arr(means, dtype=wp.vec3), arr(quats, dtype=wp.vec4), arr(scales, dtype=wp.vec3),
+                         arr(opacities, dtype=wp.float32), arr(viewmat[None], dtype=wp.mat44),
+                         arr(K[None], dtype=wp.mat33), width, height, float(near_plane), float(far_plane),
+                         float(eps2d))
+    ids = ids.reshape(height, width)
+    return (ids, w.reshape(height, width)) if return_weights else ids

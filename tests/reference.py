@@ -103,3 +103,31 @@ def rasterize_dense(means, quats, scales, opacities, colors, viewmat, K, width, 
     (T, acc, dep, _), _ = jax.lax.scan(step, init, order) if N else (init, None)
     return (acc.reshape(height, width, C), dep.reshape(height, width, 1),
             (1 - T).reshape(height, width, 1), radii)
+
+
+def top_ids_dense(means, quats, scales, opacities, viewmat, K, width, height, near=0.01, far=1e10, eps2d=0.3):
+    """(ids (H, W), weights (H, W)): per pixel the Gaussian with the largest alpha * T, -1 if none."""
+    means2d, conics, depths, _, valid = project(
+        means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d)
+    order = jnp.argsort(jnp.where(valid, depths, jnp.inf), stable=True)
+    py, px = jnp.meshgrid(jnp.arange(height), jnp.arange(width), indexing="ij")
+    pix = jnp.stack([px.ravel() + 0.5, py.ravel() + 0.5], -1).astype(means.dtype)
+    P = pix.shape[0]
+
+    def step(carry, g):
+        T, best, best_w, done = carry
+        d = means2d[g] - pix
+        cn = conics[g]
+        sigma = 0.5 * (cn[0] * d[:, 0] ** 2 + cn[2] * d[:, 1] ** 2) + cn[1] * d[:, 0] * d[:, 1]
+        alpha = jnp.minimum(ALPHA_MAX, opacities[g] * jnp.exp(-sigma))
+        live = valid[g] & ~done & (sigma >= 0) & (alpha >= ALPHA_MIN)
+        nT = T * (1 - alpha)
+        stop = live & (nT <= T_MIN)
+        use = live & ~stop
+        w = jnp.where(use, alpha * T, 0.0)
+        win = w > best_w
+        return (jnp.where(use, nT, T), jnp.where(win, g.astype(jnp.int32), best), jnp.where(win, w, best_w), done | stop), None
+
+    init = (jnp.ones(P, means.dtype), jnp.full(P, -1, jnp.int32), jnp.zeros(P, means.dtype), jnp.zeros(P, bool))
+    (_, best, best_w, _), _ = jax.lax.scan(step, init, order) if means.shape[0] else (init, None)
+    return best.reshape(height, width), best_w.reshape(height, width)
