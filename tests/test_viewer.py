@@ -1,0 +1,96 @@
+"""Viewer helpers, and a headless-chromium test that the splats are really drawn."""
+
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+
+import numpy as np
+import pytest
+
+from splatsearch.viewer import SearchViewer, covariances_from, decimate, grid_rgba, scalar_rgba
+
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--no-first-run"]
+
+
+def _free_port() -> int:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def test_covariances_match_rotation_and_scales():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(5, 4)).astype(np.float32)
+    s = rng.uniform(0.01, 0.5, (5, 3)).astype(np.float32)
+    cov = covariances_from(s, q)
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2), atol=1e-7)
+    # eigenvalues are the squared scales, whatever the rotation
+    np.testing.assert_allclose(np.sort(np.linalg.eigvalsh(cov), 1), np.sort(s**2, 1), rtol=1e-4, atol=1e-7)
+
+
+def test_decimate_keeps_the_most_covering_gaussians():
+    op = np.array([0.9, 0.1, 0.9, 0.5], np.float32)
+    sc = np.array([[0.1] * 3, [0.1] * 3, [0.01] * 3, [0.2] * 3], np.float32)
+    np.testing.assert_array_equal(decimate(op, sc, 2), [0, 3])
+    np.testing.assert_array_equal(decimate(op, sc, 10), [0, 1, 2, 3])
+
+
+def test_grid_textures_are_transparent_where_unknown():
+    grid = np.array([[0, 1], [2, 1]])
+    rgba = grid_rgba(grid, {1: (200, 200, 200, 170), 2: (0, 0, 0, 255)}, upsample=3)
+    assert rgba.shape == (6, 6, 4)
+    assert (rgba[:3, :3, 3] == 0).all()  # unknown (0) is transparent
+    assert (rgba[3:, :3] == (0, 0, 0, 255)).all()  # row 1 stays row 1: no flip
+    vals = scalar_rgba(np.array([[0.0, 1.0]]), np.array([[True, False]]), upsample=1)
+    assert vals[0, 0, 3] > 0 and vals[0, 1, 3] == 0
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium is not installed (.ci/run installs it with apt-get)")
+def test_splats_are_drawn_in_a_headless_browser():
+    import viser.transforms as vtf
+
+    viewer = SearchViewer(port=_free_port())
+    browser = None
+    try:
+        rng = np.random.default_rng(0)
+        n = 5000
+        means = np.c_[rng.uniform(-1, 1, (n, 2)), rng.uniform(-0.05, 0.05, n)].astype(np.float32)
+        colors = np.tile(np.float32([1.0, 0.0, 0.0]), (n, 1))
+        sent = viewer.set_map(means, np.full((n, 3), 0.03, np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                              np.full(n, 0.9, np.float32), colors)
+        assert sent == n
+        occ = np.zeros((40, 40), int)
+        occ[:20] = 1  # free cells at y < -1 m, below the red square
+        viewer.set_occupancy(occ, (-3.0, -3.0), 0.1)
+        with tempfile.TemporaryDirectory() as profile:
+            browser = subprocess.Popen(["chromium", *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
+                                        "--window-size=800,600", viewer.url],
+                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            t0 = time.time()
+            while not viewer.server.get_clients() and time.time() - t0 < 60:
+                time.sleep(0.2)
+            clients = list(viewer.server.get_clients().values())
+            assert clients, "chromium did not connect to the viewer within 60 s"
+            time.sleep(2.0)  # let the scene messages arrive
+            down = np.array([[1, 0, 0], [0, -1, 0], [0, 0, -1]], float)  # camera above, looking down
+            img = clients[0].get_render(240, 320, wxyz=vtf.SO3.from_matrix(down).wxyz, position=(0, 0, 3.0),
+                                        fov=1.0, timeout=60)
+    finally:
+        if browser is not None:
+            browser.terminate()
+            browser.wait(10)
+        viewer.close()
+    red = (img[..., 0] > 150) & (img[..., 1] < 100) & (img[..., 2] < 100)
+    # the 2 m square seen from 3 m with a 1 rad vertical fov covers ~19% of the frame, centred
+    assert 0.1 < red.mean() < 0.3, red.mean()
+    rows, cols = np.nonzero(red)
+    assert abs(rows.mean() - 120) < 15 and abs(cols.mean() - 160) < 15
+    # the free-space plane (y < -1 m, x < 1 m) is drawn at the bottom of the image, not the top
+    grey = (np.abs(img[..., :3].astype(int) - 225).max(-1) < 20)
+    assert grey[-10:, :200].mean() > 0.5 and grey[:40].mean() < 0.05
