@@ -6,6 +6,10 @@ Commands:
     sim episodes  sample instance-image-goal episodes of a house into a JSON file.
     sim export    write a procedural house as .glb.
     map           build a Gaussian map from a simulator trajectory or a TUM RGB-D folder.
+    demo          one SplatSearch episode on a procedural house with the live viser viewer.
+    eval          SR / SPL of SplatSearch and its ablations over many episodes.
+    view          open a saved map (.ply or .npz) in the viser viewer.
+    export        convert a map between .npz and .ply.
 """
 
 from __future__ import annotations
@@ -127,6 +131,87 @@ def _cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from splatsearch.demo import DemoOptions, run_demo
+
+    run_demo(DemoOptions(seed=args.seed, split=args.split, episode=args.episode, port=args.port,
+                         viewer=not args.no_viewer, out=args.out, variant=args.variant, max_steps=args.max_steps,
+                         hold=not args.exit_when_done))
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from splatsearch.evaluation import evaluate, markdown_table
+
+    console = Console()
+    if not console.is_terminal:
+        console.width = 120
+    variants = args.variants.split(",") if args.variants else None
+    cols = (TextColumn("[bold]eval"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+            TimeElapsedColumn())
+    with Progress(*cols, console=console) as prog:
+        task = prog.add_task("eval", total=None, info="sampling episodes ...")
+
+        def progress(r, done, total):
+            prog.update(task, total=total, completed=done,
+                        info=f"last: {r['variant']} ep {r['episode_id']} {'ok' if r['success'] else 'fail'} "
+                             f"{r['steps']} steps {r['wall_time']:.0f} s")
+
+        kw = {} if variants is None else {"variants": variants}
+        _, summary = evaluate(args.split, args.episodes, args.seed, workers=args.workers, out=args.out,
+                              max_steps=args.max_steps, progress=progress, **kw)
+    console.print(markdown_table(summary, f"{args.split}, {args.episodes} episodes, seed {args.seed}"))
+    console.print(f"wrote {args.out}/results.json, summary.json, summary.md")
+    return 0
+
+
+def _load_map(path: str):
+    from splatsearch import io
+
+    if path.endswith(".ply"):
+        return io.load_ply(path)
+    if path.endswith(".npz"):
+        return io.load_npz(path)[0]
+    raise ValueError(f"expected a .ply or .npz map, got {path!r}")
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    import time
+
+    from splatsearch.viewer import SearchViewer
+
+    gmap = _load_map(args.map)
+    viewer = SearchViewer(port=args.port, max_splats=args.max_splats, max_z=args.max_z)
+    n = viewer.set_gaussian_map(gmap)
+    print(f"showing {n:,} of {gmap.n_active:,} Gaussians at {viewer.url}; press Ctrl-C to exit")
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from splatsearch import io
+
+    gmap = _load_map(args.src)
+    if args.dst.endswith(".ply"):
+        n = io.save_ply(gmap, args.dst)
+    elif args.dst.endswith(".npz"):
+        io.save_npz(gmap, args.dst)
+        n = gmap.n_active
+    else:
+        raise ValueError(f"the output must end in .ply or .npz, got {args.dst!r}")
+    print(f"wrote {n:,} Gaussians to {args.dst}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="splatsearch", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -163,6 +248,42 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--holdout-every", type=int, default=8, help="hold out one frame in N for evaluation (0: none)")
     m.add_argument("--out", default="runs/map")
     m.set_defaults(func=_cmd_map)
+
+    from splatsearch.agent import VARIANTS
+
+    d = sub.add_parser("demo", help="a SplatSearch episode with the live viewer at http://127.0.0.1:PORT")
+    d.add_argument("--seed", type=int, default=0, help="house seed (>= 0)")
+    d.add_argument("--split", choices=["val", "val-hard"], default="val")
+    d.add_argument("--episode", type=int, default=0, help="episode index in the house")
+    d.add_argument("--port", type=int, default=8080)
+    d.add_argument("--no-viewer", action="store_true", help="headless: no viser server")
+    d.add_argument("--exit-when-done", action="store_true", help="close the viewer when the episode ends")
+    d.add_argument("--variant", choices=VARIANTS, default="splatsearch")
+    d.add_argument("--max-steps", type=int, default=None, help="step cap (default: the episode's, 1000)")
+    d.add_argument("--out", default="runs/demo")
+    d.set_defaults(func=_cmd_demo)
+
+    e = sub.add_parser("eval", help="SR / SPL of SplatSearch and its ablations")
+    e.add_argument("--split", choices=["val", "val-hard"], default="val-hard")
+    e.add_argument("--episodes", type=int, default=50)
+    e.add_argument("--seed", type=int, default=0, help="evaluation seed (selects the houses)")
+    e.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    e.add_argument("--variants", default=None, help=f"comma-separated subset of {','.join(VARIANTS)}")
+    e.add_argument("--max-steps", type=int, default=None)
+    e.add_argument("--out", default="runs/eval")
+    e.set_defaults(func=_cmd_eval)
+
+    v = sub.add_parser("view", help="open a saved map in the viewer")
+    v.add_argument("map", help="a .ply (INRIA layout) or .npz map")
+    v.add_argument("--port", type=int, default=8080)
+    v.add_argument("--max-splats", type=int, default=200_000)
+    v.add_argument("--max-z", type=float, default=None, help="hide Gaussians above this height (m), e.g. ceilings")
+    v.set_defaults(func=_cmd_view)
+
+    x = sub.add_parser("export", help="convert a map between .npz and .ply")
+    x.add_argument("src")
+    x.add_argument("dst")
+    x.set_defaults(func=_cmd_export)
     return p
 
 

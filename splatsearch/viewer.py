@@ -75,6 +75,18 @@ def scalar_rgba(values: np.ndarray, known: np.ndarray, upsample: int = 4, alpha:
     return _upsample(out, upsample)
 
 
+def crop_known(known: np.ndarray, pad: int = 2) -> tuple[slice, slice] | None:
+    """Row and column slices of the bounding box of ``known`` cells grown by ``pad`` (None if
+    nothing is known): only that part of a large grid is worth sending to the browser."""
+    rows = np.flatnonzero(known.any(1))
+    if len(rows) == 0:
+        return None
+    cols = np.flatnonzero(known.any(0))
+    H, W = known.shape
+    return (slice(max(0, rows[0] - pad), min(H, rows[-1] + pad + 1)),
+            slice(max(0, cols[0] - pad), min(W, cols[-1] + pad + 1)))
+
+
 def _upsample(img: np.ndarray, u: int) -> np.ndarray:
     # the browser samples textures bilinearly: repeating cells keeps their edges sharp
     return np.repeat(np.repeat(img, u, 0), u, 1) if u > 1 else img
@@ -95,10 +107,12 @@ class SearchViewer:
         port: TCP port (bound on ``host``, 127.0.0.1 by default: the viewer is local only).
         max_splats: Gaussian budget per map update (~32 bytes each on the wire).
         grid_upsample: texture upsampling factor of the grid layers.
+        max_z: Gaussians above this height (m) are not sent, so that the ceiling does not hide
+            the rooms from the default top-down view; None sends everything.
     """
 
     def __init__(self, port: int = 8080, host: str = "127.0.0.1", max_splats: int = 100_000,
-                 grid_upsample: int = 4, verbose: bool = False):
+                 grid_upsample: int = 2, max_z: float | None = 2.2, verbose: bool = False):
         import viser
 
         if max_splats < 1:
@@ -108,6 +122,7 @@ class SearchViewer:
         self.host, self.port = host, int(self.server.get_port())
         self.max_splats = int(max_splats)
         self.grid_upsample = int(grid_upsample)
+        self.max_z = max_z
         self._splats = None
         self._lock = threading.Lock()
         self._step_requested = threading.Event()
@@ -140,9 +155,14 @@ class SearchViewer:
     def url(self) -> str:
         return f"http://{self.host}:{self.port}"
 
-    def _replace(self, layer: str, handles: list) -> None:
+    def _clear(self, layer: str) -> None:
+        # before adding: viser replaces a node of the same name silently, and removing the old
+        # handle afterwards would remove the new node
         for h in self._handles[layer]:
             h.remove()
+        self._handles[layer] = []
+
+    def _replace(self, layer: str, handles: list) -> None:
         self._handles[layer] = handles
         self._apply_visibility(layer)
 
@@ -175,7 +195,10 @@ class SearchViewer:
         n = len(means)
         scales = np.broadcast_to(np.asarray(scales, np.float32).reshape(n, -1), (n, 3))
         opacities = np.asarray(opacities, np.float32).reshape(n)
+        if self.max_z is not None:
+            opacities = np.where(means[:, 2] > self.max_z, 0.0, opacities)
         keep = decimate(opacities, scales, self.max_splats)
+        keep = keep[opacities[keep] > 0]
         cov = covariances_from(scales[keep], np.asarray(quats, np.float32)[keep])
         rgb = np.clip(np.asarray(colors, np.float32)[keep], 0, 1)
         op = opacities[keep, None]
@@ -197,6 +220,7 @@ class SearchViewer:
         h, w = shape
         cx = origin_xy[0] + 0.5 * w * cell_size
         cy = origin_xy[1] + 0.5 * h * cell_size
+        self._clear(layer)
         handle = self.server.scene.add_image(f"/{layer}", rgba, render_width=w * cell_size,
                                              render_height=h * cell_size, format="png",
                                              position=(cx, cy, _GRID_Z[layer]), cast_shadow=False,
@@ -209,17 +233,27 @@ class SearchViewer:
         """Occupancy grid (H, W) ints (grid[row, col] covers x = ox + col*c, y = oy + row*c);
         free cells light grey, occupied dark, anything else (unknown) transparent."""
         grid = np.asarray(grid)
-        rgba = grid_rgba(grid, {free: (225, 225, 225, 170), occupied: (40, 40, 60, 230)}, self.grid_upsample)
-        self._grid_plane("occupancy", rgba, origin_xy, cell_size, grid.shape)
+        box = crop_known((grid == free) | (grid == occupied))
+        if box is None:
+            return
+        sub = grid[box]
+        origin = (origin_xy[0] + box[1].start * cell_size, origin_xy[1] + box[0].start * cell_size)
+        rgba = grid_rgba(sub, {free: (225, 225, 225, 170), occupied: (40, 40, 60, 230)}, self.grid_upsample)
+        self._grid_plane("occupancy", rgba, origin, cell_size, sub.shape)
 
     @_timed
     def set_value_map(self, value: np.ndarray, confidence: np.ndarray, origin_xy, cell_size: float) -> None:
         """Value map (H, W) in [0, 1] drawn where ``confidence`` > 0."""
-        value = np.asarray(value, np.float32)
-        known = np.asarray(confidence) > 0
-        lo, hi = (float(value[known].min()), float(value[known].max())) if known.any() else (0.0, 1.0)
+        known_all = np.asarray(confidence) > 0
+        box = crop_known(known_all)
+        if box is None:
+            return
+        value = np.asarray(value, np.float32)[box]
+        known = known_all[box]
+        origin = (origin_xy[0] + box[1].start * cell_size, origin_xy[1] + box[0].start * cell_size)
+        lo, hi = float(value[known].min()), float(value[known].max())
         norm = (value - lo) / max(hi - lo, 1e-6)
-        self._grid_plane("value", scalar_rgba(norm, known, self.grid_upsample), origin_xy, cell_size, value.shape)
+        self._grid_plane("value", scalar_rgba(norm, known, self.grid_upsample), origin, cell_size, value.shape)
 
     @_timed
     def set_frontiers(self, points_xy: np.ndarray, chosen: int | None = None, z: float = 0.05) -> None:
@@ -227,6 +261,7 @@ class SearchViewer:
         sc = self.server.scene
         pts = np.asarray(points_xy, np.float32).reshape(-1, 2)
         handles = []
+        self._clear("frontiers")
         if len(pts):
             p3 = np.c_[pts, np.full(len(pts), z, np.float32)]
             handles.append(sc.add_point_cloud("/frontiers/all", p3, (255, 160, 0), point_size=0.12,
@@ -239,6 +274,7 @@ class SearchViewer:
     def _polyline(self, layer: str, pts_xy: np.ndarray, color, z: float) -> None:
         pts = np.asarray(pts_xy, np.float32).reshape(-1, 2)
         handles = []
+        self._clear(layer)
         if len(pts) >= 2:
             p3 = np.c_[pts, np.full(len(pts), z, np.float32)]
             seg = np.stack([p3[:-1], p3[1:]], 1)
@@ -263,6 +299,7 @@ class SearchViewer:
         w, h = 2 * K[0, 2], 2 * K[1, 2]
         fov = 2 * np.arctan(h / (2 * K[1, 1]))
         img = None if rgb is None else _thumb(rgb, 160)
+        self._clear("camera")
         handle = self.server.scene.add_camera_frustum("/camera", fov=float(fov), aspect=float(w / h), scale=0.3,
                                                       image=img, wxyz=wxyz, position=pos, color=(230, 30, 30))
         self._replace("camera", [handle])
@@ -273,6 +310,7 @@ class SearchViewer:
         ``label``, ``score`` (best match count) and ``matched`` (bool)."""
         sc = self.server.scene
         handles = []
+        self._clear("objects")
         for i, o in enumerate(objects):
             c = np.asarray(o["centroid"], np.float32)
             ext = np.maximum(np.asarray(o.get("extent", (0.4, 0.4, 0.4)), np.float32), 0.05)
@@ -292,6 +330,7 @@ class SearchViewer:
         w, h = 2 * K[0, 2], 2 * K[1, 2]
         fov = 2 * np.arctan(h / (2 * K[1, 1]))
         handles = []
+        self._clear("novel_views")
         for i, vm in enumerate(np.asarray(viewmats)):
             wxyz, pos = _pose_of(vm)
             img = None if rendered is None else _thumb(rendered[i], 64)

@@ -39,3 +39,22 @@ def test_map_command_writes_map_and_summary(tmp_path):
 def test_bench_small_scene(capsys):
     assert main(["bench", "--scene", "small", "--repeats", "1"]) == 0
     assert "random 10k" in capsys.readouterr().out
+
+
+def test_demo_headless_writes_run_folder_and_export_round_trips(tmp_path):
+    from splatsearch import io
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--no-viewer", "--seed", "3", "--max-steps", "4", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 4 and summary["interrupted"] is False and "success" in summary
+    assert json.loads((out / "episode.json").read_text())["house_seed"] == 3
+    assert len(json.loads((out / "trajectory.json").read_text())) == 4
+    ply = out / "map.ply"
+    assert summary["gaussians"] == io.load_ply(str(ply)).n_active > 0
+    npz = tmp_path / "m.npz"
+    assert main(["export", str(ply), str(npz)]) == 0
+    assert main(["export", str(npz), str(tmp_path / "back.ply")]) == 0
+    assert io.load_ply(str(tmp_path / "back.ply")).n_active == summary["gaussians"]
+    assert main(["export", str(ply), str(tmp_path / "m.txt")]) == 2
+    assert main(["demo", "--no-viewer", "--seed", "-1", "--out", str(out)]) == 2

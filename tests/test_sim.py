@@ -197,6 +197,14 @@ def test_episodes_reachable_and_reproducible(house, env, split, tmp_path):
     np.testing.assert_array_equal(rebuilt.face_instance, house.face_instance)
 
 
+def test_replay_of_a_house_with_a_corridor():
+    house = sim.make_house(0)
+    assert any(r.kind == "corridor" for r in house.rooms)
+    ep = sim.make_episodes(house, 1, "val", seed=0)[0]
+    rebuilt = sim.house_for_episode(ep)
+    np.testing.assert_array_equal(rebuilt.face_instance, house.face_instance)
+
+
 def test_success_and_path_replay(house, env):
     """Following the FMM gradient from the start reaches the goal; d* matches the walked length."""
     ep = sim.make_episodes(house, 1, "val", seed=5, env=env)[0]

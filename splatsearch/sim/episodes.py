@@ -244,8 +244,7 @@ def make_episodes(house: House, n: int, split: str = "val", seed: int = 0, *, en
             continue
         xy = nav.cell_to_world(rc)
         episodes.append(Episode(
-            episode_id=len(episodes), split=split, house_seed=int(house.seed or 0), house_n_rooms=len(
-                [r for r in house.rooms if r.kind != "corridor"]), generator_version=GENERATOR_VERSION,
+            episode_id=len(episodes), split=split, house_seed=int(house.seed or 0), house_n_rooms=len(house.rooms), generator_version=GENERATOR_VERSION,
             start=[float(xy[0]), float(xy[1]), float(rng.uniform(-np.pi, np.pi))],
             goal_instance_id=obj.instance_id, goal_class=obj.class_name,
             goal_viewmat=np.asarray(vm, float).tolist(), goal_K=intrinsics(width, height).tolist(),

@@ -387,7 +387,8 @@ def make_house(seed: int, n_rooms: int | None = None, *, objects_per_room: tuple
 
     Args:
         seed: any non-negative integer.
-        n_rooms: 3..8 rooms (corridors not counted); random in that range when None.
+        n_rooms: 3..8 rooms, counting the corridor that houses of 5+ rooms get; random in that
+            range when None.
         objects_per_room: (min, max) furniture pieces per non-corridor room.
         distractors: add cabinets, lamps and shelves (never goals).
 

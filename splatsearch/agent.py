@@ -1,0 +1,284 @@
+"""The SplatSearch agent (thesis Chapter 4): sense -> map -> identify -> plan -> act.
+
+One :meth:`SplatSearchAgent.act` call per simulator step:
+
+1. the exploration planner fuses depth into the occupancy grid and the goal-image cosine into the
+   value map (eq 11-12);
+2. every ``map_every``-th frame the Gaussian mapper adds the frame (eq 3-10) at the mapping
+   resolution, and the detector's goal-class masks are lifted onto the Gaussians that render
+   them (the rasterizer's per-pixel top-contributor ids), then merged into the object DB (eq 13);
+3. every object seen from ``f_O`` new viewpoints gets the NVSM: ``n_views`` hemisphere views
+   rendered from the map, holes (alpha < tau) inpainted, and feature matches against the goal
+   image counted; e_max >= tau_m marks it as the goal (eq 18);
+4. with a matched object the agent follows the FMM path to it and stops within ``stop_margin`` of
+   its extent; otherwise it takes the eq 19/20 frontier.
+
+Variants (the thesis' Table IV ablations): ``splatsearch`` (full), ``no_nvsm`` (match the raw
+observation of each detection instead of rendered views), ``no_inpaint``, ``nearest_frontier``
+(eq 19 with alpha only) and ``gaussnav`` (explore everything first, then identify and go).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from splatsearch.mapper import Mapper, MapperConfig
+from splatsearch.nav.encoders import ColorTextureEncoder, ImageEncoder
+from splatsearch.nav.exploration import ExplorationConfig, ExplorationPlanner, ObjectScore
+from splatsearch.nav.grid import GridSpec
+from splatsearch.search.detection import Detector, SimDetector
+from splatsearch.search.inpainting import Inpainter, OpenCVInpainter, holes_from_alpha
+from splatsearch.search.matching import DEFAULT_TAU_M, Matcher, SIFTMatcher, best_view
+from splatsearch.search.novel_views import hemisphere_viewpoints, render_novel_views
+from splatsearch.search.objects import ObjectDB, lift_mask_ids, map_top_ids
+
+VARIANTS = ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav")
+
+
+@dataclass
+class AgentConfig:
+    """Agent settings.
+
+    variant: one of :data:`VARIANTS`.
+    map_every: map (and detect) every k-th frame; map_scale: mapping resolution relative to the
+    camera; map_iters / map_stride: optimisation steps per mapped frame and densify stride.
+    tau_m, f_O, tau_d: match threshold (inliers), NVSM trigger period (viewpoints), merge
+    distance (m). n_views, view_radius (m), view_elevations_deg, inpaint_tau: the NVSM.
+    alpha, beta, delta: eq 19 weights. stop_margin: the agent stops this close (m) to a matched
+    object's extent (Habitat success: within 1 m of the object's navigable viewpoints).
+    """
+
+    variant: str = "splatsearch"
+    map_every: int = 2
+    map_scale: float = 0.5
+    map_iters: int = 10
+    map_stride: int = 2
+    tau_m: float = DEFAULT_TAU_M
+    f_O: int = 3
+    tau_d: float = 1.0
+    n_views: int = 12
+    view_radius: float = 1.5
+    view_elevations_deg: tuple = (20.0, 45.0)
+    inpaint_tau: float = 0.5
+    alpha: float = 1.0
+    beta: float = 1.0
+    delta: float = 0.5
+    stop_margin: float = 0.6
+    grid_shape: tuple = (600, 600)
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
+            raise ValueError("need map_every >= 1, 0 < map_scale <= 1 and n_views >= 1")
+
+
+@dataclass
+class StepInfo:
+    """What the agent did this step (for progress displays and the viewer)."""
+
+    action: str
+    status: str
+    n_frontiers: int = 0
+    n_objects: int = 0
+    best_score: float = 0.0
+    nvsm_runs: int = 0
+    timings: dict = field(default_factory=dict)
+
+
+@dataclass
+class NovelViews:
+    """The latest NVSM run: object id, cameras (V, 4, 4), renders, inpainted views, counts."""
+
+    entry_id: int
+    viewmats: np.ndarray
+    rendered: np.ndarray
+    inpainted: np.ndarray
+    counts: np.ndarray
+    best: int
+
+
+class SplatSearchAgent:
+    """Instance-image-goal search in an unknown house.
+
+    Args:
+        K, width, height: the robot camera.
+        goal_rgb: (H, W, 3) goal image in [0, 1]; goal_class: its object class (a goal category).
+        start_pose: (x, y, yaw) where the episode starts (centres the grid maps).
+        config: :class:`AgentConfig`; detector / matcher / inpainter / encoder: plug-ins
+            (offline defaults: simulator masks, SIFT + RANSAC, OpenCV Telea, colour+texture).
+    """
+
+    def __init__(self, K, width: int, height: int, goal_rgb: np.ndarray, goal_class: str, start_pose, *,
+                 config: AgentConfig | None = None, detector: Detector | None = None,
+                 matcher: Matcher | None = None, inpainter: Inpainter | None = None,
+                 encoder: ImageEncoder | None = None):
+        self.cfg = cfg = config or AgentConfig()
+        self.K = np.asarray(K, np.float64)
+        self.W, self.H = int(width), int(height)
+        self.goal = np.asarray(goal_rgb, np.float32)
+        self.goal_class = goal_class
+        self.detector = detector or SimDetector(goal_classes=(goal_class,))
+        self.matcher = matcher or SIFTMatcher()
+        self.inpainter = inpainter or OpenCVInpainter()
+        only_alpha = cfg.variant in ("nearest_frontier", "gaussnav")
+        ecfg = ExplorationConfig(alpha=cfg.alpha, beta=0.0 if only_alpha else cfg.beta,
+                                 delta=0.0 if only_alpha else cfg.delta, tau_m=cfg.tau_m)
+        spec = GridSpec.centered(np.asarray(start_pose)[:2], cfg.grid_shape)
+        self.explorer = ExplorationPlanner(spec, ecfg, encoder=encoder or ColorTextureEncoder())
+        if ecfg.delta > 0:
+            self.explorer.set_goal_image(self.goal)
+        # mapping camera: the robot camera scaled down
+        s = cfg.map_scale
+        self.mW, self.mH = max(8, round(self.W * s)), max(8, round(self.H * s))
+        self.mK = self.K.copy()
+        self.mK[:2] *= np.array([[self.mW / self.W], [self.mH / self.H]])
+        self.mapper = Mapper(self.mK.astype(np.float32), self.mW, self.mH,
+                             MapperConfig(iters=cfg.map_iters, stride=cfg.map_stride, seed=cfg.seed))
+        self.db = ObjectDB(tau_d=cfg.tau_d, f_O=cfg.f_O)
+        self.frame_index = 0
+        self.nvsm_runs = 0
+        self.last_views: NovelViews | None = None
+        self.last_decision = None
+        self.target_entry: int | None = None
+        self.path_xy: np.ndarray = np.zeros((0, 2))
+        self._explored = False
+        self._given_up: set[int] = set()
+
+    # -- one step -------------------------------------------------------------------------------
+    def act(self, rgb: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, pose, frame=None) -> StepInfo:
+        """Sense one observation and return the next action in a :class:`StepInfo`.
+
+        rgb (H, W, 3), depth (H, W) metres, viewmat (4, 4) world-to-camera of the (odometry) pose,
+        pose (x, y, yaw); ``frame`` is passed to the detector (the simulator's masks).
+        """
+        t = {}
+        t0 = time.perf_counter()
+        pose = np.asarray(pose, np.float64)
+        self.explorer.observe(depth, viewmat, self.K, pose, rgb)
+        t["nav"] = time.perf_counter() - t0
+        if self.frame_index % self.cfg.map_every == 0:
+            t1 = time.perf_counter()
+            small_rgb = cv2.resize(np.asarray(rgb, np.float32), (self.mW, self.mH), interpolation=cv2.INTER_AREA)
+            small_d = cv2.resize(np.asarray(depth, np.float32), (self.mW, self.mH), interpolation=cv2.INTER_NEAREST)
+            self.mapper.update(small_rgb, small_d, viewmat)
+            t["map"] = time.perf_counter() - t1
+            t1 = time.perf_counter()
+            self._identify(rgb, viewmat, pose, frame)
+            t["identify"] = time.perf_counter() - t1
+        self.frame_index += 1
+        t1 = time.perf_counter()
+        action, status = self._decide(pose)
+        t["plan"] = time.perf_counter() - t1
+        fr = self.last_decision.frontiers if self.last_decision is not None else []
+        best = max([e.e_max for e in self.db] + [0.0])
+        return StepInfo(action, status, len(fr), len(self.db), best, self.nvsm_runs, t)
+
+    # -- SOIM + NVSM + FEM ----------------------------------------------------------------------
+    def _identify(self, rgb, viewmat, pose, frame) -> None:
+        dets = [d for d in self.detector.detect(rgb, frame) if d.label == self.goal_class]
+        if not dets:
+            return
+        ids = None
+        for d in dets:
+            if ids is None:
+                ids = map_top_ids(self.mapper.map, viewmat, self.mK, self.mW, self.mH)
+            mask = cv2.resize(d.mask.astype(np.uint8), (self.mW, self.mH), interpolation=cv2.INTER_NEAREST) > 0
+            means = np.asarray(self.mapper.map.means)
+            lifted = lift_mask_ids(mask, ids, means, active=np.asarray(self.mapper.map.active), erode_px=1)
+            if lifted is None:
+                continue
+            res = self.db.add_lifted(d.label, lifted, viewmat)
+            if self.cfg.variant == "no_nvsm" and res.new_viewpoint:
+                # the ablation: match the raw observation (the detection's neighbourhood) instead
+                crop = _crop_around(rgb, d.mask)
+                n = self.matcher.count(self.goal, crop)
+                self.db.record_match(res.entry_id, float(n), 0, self.cfg.tau_m)
+        if self.cfg.variant in ("no_nvsm", "gaussnav"):
+            self.db.pop_pending()  # gaussnav identifies after exploring; no_nvsm matched above
+            return
+        for eid in self.db.pop_pending():
+            self._run_nvsm(eid)
+
+    def _run_nvsm(self, eid: int) -> None:
+        cfg = self.cfg
+        e = self.db[eid]
+        vms = hemisphere_viewpoints(e.centroid, cfg.view_radius, cfg.n_views, cfg.view_elevations_deg)
+        # the whole map is rendered, not a crop around the object: the goal image shows the
+        # object in its surroundings, and those surroundings carry many of the matches
+        rendered, alpha = render_novel_views(self.mapper.map, vms, self.K, self.W, self.H)
+        if cfg.variant == "no_inpaint":
+            views = rendered
+        else:
+            views = self.inpainter.inpaint(rendered, holes_from_alpha(alpha, cfg.inpaint_tau))
+        bv = best_view(self.goal, views, self.matcher)
+        self.db.record_match(eid, float(bv.e_max), bv.i_star, cfg.tau_m, vms[bv.i_star])
+        self.nvsm_runs += 1
+        self.last_views = NovelViews(eid, vms, rendered, views, bv.counts, bv.i_star)
+
+    # -- planning -------------------------------------------------------------------------------
+    def _decide(self, pose, *, after_exploring: bool = False) -> tuple[str, str]:
+        matched = [e for e in self.db.matched() if e.id not in self._given_up]
+        if self._explored and not matched:
+            if self.cfg.variant == "gaussnav":
+                for e in self.db:
+                    if e.n_nvsm == 0:
+                        self._run_nvsm(e.id)
+                matched = self.db.matched()
+            if not matched:
+                # everything is explored and nothing passed tau_m: the best candidate with any
+                # match at all is still better than stopping where the robot is
+                cands = [e for e in self.db if e.e_max > 0 and e.id not in self._given_up]
+                if cands:
+                    best = max(cands, key=lambda e: e.e_max)
+                    best.matched = True
+                    matched = [best]
+        if matched:
+            e = matched[0]
+            self.target_entry = e.id
+            planner = self.explorer.planner()
+            radius = e.extent_radius + self.cfg.stop_margin
+            plan = planner.plan(pose, e.centroid[:2], radius)
+            try:
+                self.path_xy = planner.path(pose[:2], e.centroid[:2], radius)
+            except Exception:  # noqa: BLE001 - the path is for display only
+                self.path_xy = np.zeros((0, 2))
+            if plan.status in ("reached", "closest"):
+                return "stop", "goal_reached"
+            if plan.status == "unreachable":
+                if after_exploring or self._explored:
+                    self._given_up.add(e.id)  # no way to it on the map: try the next candidate
+                    return "turn_left", "unreachable_goal"
+                return self._explore(pose, "exploring_to_goal")  # the way to it is not mapped yet
+            return plan.action, "to_goal"
+        if after_exploring:
+            return "stop", "explored"
+        return self._explore(pose, "exploring")
+
+    def _explore(self, pose, label: str) -> tuple[str, str]:
+        cents, scores = self.db.scores()
+        objs = [ObjectScore(c[:2], s) for c, s in zip(cents, scores)]
+        d = self.explorer.act(pose, objs)
+        self.last_decision = d
+        if d.target is not None:
+            self.path_xy = np.asarray([pose[:2], d.target.waypoint_xy])
+        if d.status == "explored":
+            self._explored = True
+            return self._decide(pose, after_exploring=True)
+        return d.action, label if d.status == "exploring" else d.status
+
+
+def _crop_around(rgb: np.ndarray, mask: np.ndarray, margin: float = 0.5) -> np.ndarray:
+    """The image region around a mask's bounding box, grown by ``margin`` of its size."""
+    rows, cols = np.nonzero(mask)
+    if len(rows) == 0:
+        return rgb
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    dr, dc = int((r1 - r0) * margin), int((c1 - c0) * margin)
+    H, W = mask.shape
+    return rgb[max(0, r0 - dr):min(H, r1 + dr), max(0, c0 - dc):min(W, c1 + dc)]

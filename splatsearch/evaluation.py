@@ -1,0 +1,128 @@
+"""SR / SPL evaluation of SplatSearch and its ablations (thesis Tables III and IV).
+
+Episodes come from procedural houses whose seeds derive from the evaluation seed
+(``house_seeds``), so evaluation houses can be kept apart from those used for tuning. Episodes
+run in worker processes; results are written as JSON and as a markdown table.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+
+import numpy as np
+
+from splatsearch.agent import VARIANTS, AgentConfig
+from splatsearch.io import atomic_write_bytes
+
+#: evaluation houses start here, away from the seeds 0..99 used while developing
+EVAL_SEED_BASE = 1000
+
+
+def house_seeds(seed: int, n_houses: int) -> list[int]:
+    """Seeds of the evaluation houses for evaluation seed ``seed``."""
+    return [EVAL_SEED_BASE + 100 * seed + i for i in range(n_houses)]
+
+
+def make_eval_episodes(split: str, n: int, seed: int = 0, per_house: int = 5) -> list:
+    """``n`` episodes of ``split``, ``per_house`` per house, in houses :func:`house_seeds`."""
+    from splatsearch import sim
+
+    if n < 1 or per_house < 1:
+        raise ValueError(f"need n >= 1 and per_house >= 1, got {n}, {per_house}")
+    eps = []
+    for hs in house_seeds(seed, -(-n // per_house)):
+        house = sim.make_house(hs)
+        env = sim.HouseEnv(house)
+        k = min(per_house, n - len(eps))
+        for e in sim.make_episodes(house, k, split, seed=seed, env=env):
+            e.episode_id = len(eps)
+            eps.append(e)
+    return eps
+
+
+def _run_one(args):
+    ep_json, variant, max_steps = args
+    import warp as wp
+
+    wp.config.quiet = True
+    from splatsearch.episode import run_episode
+    from splatsearch.sim.episodes import Episode
+
+    r = run_episode(Episode.from_json(ep_json), AgentConfig(variant=variant), max_steps=max_steps)
+    d = r.to_json()
+    d.pop("trajectory")
+    return d
+
+
+def summarise(results: list[dict]) -> dict[str, dict]:
+    """Per variant: n, SR, SPL, mean steps, median and mean wall time (s)."""
+    out = {}
+    for v in dict.fromkeys(r["variant"] for r in results):
+        rs = [r for r in results if r["variant"] == v]
+        out[v] = {"n": len(rs), "SR": float(np.mean([r["success"] for r in rs])),
+                  "SPL": float(np.mean([r["spl"] for r in rs])), "steps": float(np.mean([r["steps"] for r in rs])),
+                  "median_wall_s": float(np.median([r["wall_time"] for r in rs])),
+                  "mean_wall_s": float(np.mean([r["wall_time"] for r in rs]))}
+    return out
+
+
+def markdown_table(summary: dict[str, dict], title: str) -> str:
+    """The summary as a markdown table."""
+    lines = [f"### {title}", "", "| method | episodes | SR | SPL | mean steps | median wall s |",
+             "|---|---|---|---|---|---|"]
+    for v, s in summary.items():
+        lines.append(f"| {v} | {s['n']} | {s['SR']:.3f} | {s['SPL']:.3f} | {s['steps']:.0f} | "
+                     f"{s['median_wall_s']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIANTS, workers: int = 1,
+             out: str | None = None, max_steps: int | None = None, progress=None) -> tuple[list[dict], dict]:
+    """Run every variant on the same ``n`` episodes. Returns (per-episode results, summary).
+
+    Results are saved after every finished episode to ``out/results.json`` (so a crash or Ctrl-C
+    keeps them) and the summary to ``out/summary.json`` and ``out/summary.md``.
+    """
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad:
+        raise ValueError(f"unknown variant(s) {bad}; expected some of {VARIANTS}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    eps = make_eval_episodes(split, n, seed)
+    jobs = [(e.to_json(), v, max_steps) for v in variants for e in eps]
+    results: list[dict] = []
+    t0 = time.perf_counter()
+
+    def save():
+        if out:
+            os.makedirs(out, exist_ok=True)
+            atomic_write_bytes(os.path.join(out, "results.json"), json.dumps(results, indent=1).encode())
+
+    if workers == 1:
+        for j in jobs:
+            results.append(_run_one(j))
+            save()
+            if progress:
+                progress(results[-1], len(results), len(jobs))
+    else:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # Warp and XLA hold threads: never fork them
+        with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+            futs = [pool.submit(_run_one, j) for j in jobs]
+            for f in as_completed(futs):
+                results.append(f.result())
+                save()
+                if progress:
+                    progress(results[-1], len(results), len(jobs))
+    summary = summarise(results)
+    if out:
+        meta = {"split": split, "episodes": n, "seed": seed, "house_seeds": sorted({e.house_seed for e in eps}),
+                "workers": workers, "total_wall_s": time.perf_counter() - t0, "summary": summary}
+        atomic_write_bytes(os.path.join(out, "summary.json"), json.dumps(meta, indent=1).encode())
+        atomic_write_bytes(os.path.join(out, "summary.md"),
+                           markdown_table(summary, f"{split}, {n} episodes, seed {seed}").encode())
+    return results, summary

@@ -1,0 +1,75 @@
+"""The SplatSearch agent, the episode runner, the demo and the evaluation (short runs)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from splatsearch import sim
+from splatsearch.agent import VARIANTS, AgentConfig, SplatSearchAgent
+from splatsearch.episode import run_episode
+from splatsearch.evaluation import evaluate, house_seeds, markdown_table, summarise
+
+
+@pytest.fixture(scope="module")
+def episode():
+    house = sim.make_house(3)
+    env = sim.HouseEnv(house)
+    return sim.make_episodes(house, 1, "val", seed=0, env=env)[0], env
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="variant"):
+        AgentConfig(variant="oracle")
+    with pytest.raises(ValueError):
+        AgentConfig(map_every=0)
+    assert "splatsearch" in VARIANTS and "gaussnav" in VARIANTS
+
+
+def test_short_episode_runs_and_is_judged(episode):
+    ep, env = episode
+    seen = []
+    r = run_episode(ep, AgentConfig(map_every=2), env=env, max_steps=8,
+                    on_step=lambda agent, obs, info: seen.append((info.action, info.status, agent.mapper.map.n_active)))
+    assert r.steps == 8 and len(r.trajectory) == 9
+    assert len(seen) == 8
+    assert all(a in sim.ACTIONS for a, _, _ in seen)
+    assert seen[0][1] == "look_around"  # a full look around comes first
+    assert seen[-1][2] > 0  # the map grew
+    assert r.success == (r.final_distance <= ep.success_distance)
+    assert 0.0 <= r.spl <= 1.0 and (r.spl > 0) == r.success
+
+
+def test_agent_rejects_bad_goal_class(episode):
+    ep, env = episode
+    with pytest.raises(ValueError):
+        SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), "unicorn", ep.start)
+
+
+def test_summary_and_table():
+    rs = [{"variant": "a", "success": True, "spl": 0.5, "steps": 10, "wall_time": 2.0},
+          {"variant": "a", "success": False, "spl": 0.0, "steps": 30, "wall_time": 4.0},
+          {"variant": "b", "success": True, "spl": 1.0, "steps": 5, "wall_time": 1.0}]
+    s = summarise(rs)
+    assert s["a"] == {"n": 2, "SR": 0.5, "SPL": 0.25, "steps": 20.0, "median_wall_s": 3.0, "mean_wall_s": 3.0}
+    assert s["b"]["SR"] == 1.0
+    md = markdown_table(s, "t")
+    assert "| a | 2 | 0.500 | 0.250 | 20 | 3.0 |" in md
+    assert house_seeds(0, 2) == [1000, 1001] and house_seeds(1, 1) == [1100]
+
+
+def test_evaluate_writes_results(tmp_path):
+    results, summary = evaluate("val", 1, seed=0, variants=("nearest_frontier",), out=str(tmp_path), max_steps=4)
+    assert len(results) == 1 and results[0]["steps"] == 4
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["summary"]["nearest_frontier"]["n"] == 1
+    assert (tmp_path / "summary.md").read_text().startswith("### val")
+    with pytest.raises(ValueError):
+        evaluate("val", 1, variants=("nope",))
+
+
+@pytest.mark.slow
+def test_longer_episode_end_to_end(episode):
+    ep, env = episode
+    r = run_episode(ep, AgentConfig(), env=env, max_steps=150)
+    assert r.steps <= 150 and r.n_objects >= 0 and np.isfinite(r.path_length)
