@@ -1,0 +1,164 @@
+"""Novel Viewpoint Synthesis Module (NVSM, thesis Section 4.2.3).
+
+Cameras are placed on the upper hemisphere of radius ``r_v`` around an object's centroid at
+fixed azimuth steps, each looking at the centroid, and the Gaussian map is rendered from them.
+The renders have holes where the map is unobserved; :mod:`splatsearch.search.inpainting` fills
+them before matching.
+
+Object-centric renders (an addition to the thesis, see :func:`crop_box_for`): Gaussians outside a
+box around the object can be hidden, so walls and floors, whose textures repeat across a house,
+do not produce feature matches between the goal image and views of the wrong object.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+#: world z of the ceiling in the procedural houses is 2.6 m; cameras stay a little below it
+DEFAULT_MAX_HEIGHT = 2.4
+DEFAULT_MIN_HEIGHT = 0.2
+
+
+def _look_at_from(eye: np.ndarray, target: np.ndarray, az: float) -> np.ndarray:
+    """World-to-camera (OpenCV) at ``eye`` looking at ``target`` with no roll. ``az`` is the camera's
+    azimuth around the target; the right axis comes from it, so a camera straight above the target
+    (where the usual cross product with world up degenerates) is still well defined."""
+    fwd = target - eye
+    fwd = fwd / np.linalg.norm(fwd)
+    right = np.array([-np.sin(az), np.cos(az), 0.0])
+    right = right - fwd * (right @ fwd)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd])
+    vm = np.eye(4)
+    vm[:3, :3] = R
+    vm[:3, 3] = -R @ eye
+    return vm
+
+
+def hemisphere_viewpoints(centroid: Sequence[float], radius: float = 1.5, n_views: int = 12,
+                          elevations_deg: Sequence[float] = (35.0,), azimuth0_deg: float = 0.0, *,
+                          min_height: float | None = DEFAULT_MIN_HEIGHT,
+                          max_height: float | None = DEFAULT_MAX_HEIGHT, min_rise: float = 0.1) -> np.ndarray:
+    """Cameras on the upper hemisphere around ``centroid``, all looking at it.
+
+    The ``n_views`` cameras are split over the elevation rings as evenly as possible (earlier
+    rings get the remainder); each ring is sampled at fixed azimuth steps of 360 / n_ring
+    degrees from ``azimuth0_deg``, odd rings shifted by half a step so rings interleave.
+
+    A camera whose height would leave [``min_height``, ``max_height``] (floor and ceiling, in
+    world metres) is moved vertically to the limit and horizontally so it stays ``radius`` from
+    the centroid; every camera stays at least ``min_rise`` above the centroid, so all views look
+    down on the object as a robot or a person would.
+
+    Args:
+        centroid: (3,) world position in metres.
+        radius: r_v, camera distance in metres.
+        n_views: N_R.
+        elevations_deg: ring elevations above the horizontal through the centroid, in (0, 90].
+        azimuth0_deg: azimuth of the first camera (degrees from +x, counter-clockwise).
+
+    Returns:
+        (n_views, 4, 4) float64 world-to-camera matrices (OpenCV frame).
+
+    Raises:
+        ValueError: for a bad centroid, radius, count or elevation, or when the ceiling leaves no
+            room above the centroid.
+    """
+    c = np.asarray(centroid, np.float64).reshape(-1)
+    if c.shape != (3,) or not np.all(np.isfinite(c)):
+        raise ValueError(f"centroid must be a finite (3,) position, got {np.asarray(centroid)}")
+    if not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be positive (metres), got {radius}")
+    if isinstance(n_views, bool) or int(n_views) != n_views or n_views < 1:
+        raise ValueError(f"n_views must be an integer >= 1, got {n_views}")
+    elev = np.radians(np.asarray(elevations_deg, np.float64).reshape(-1))
+    if len(elev) == 0 or len(elev) > n_views or not np.all((elev > 0) & (elev <= np.pi / 2)):
+        raise ValueError(f"need 1..n_views elevations in (0, 90] degrees, got {list(elevations_deg)}")
+    if not 0 < min_rise < radius:
+        raise ValueError(f"min_rise must be in (0, radius), got {min_rise}")
+    z_lo = c[2] + min_rise
+    if min_height is not None:
+        z_lo = max(z_lo, float(min_height))
+    z_hi = c[2] + radius if max_height is None else min(c[2] + radius, float(max_height))
+    if z_hi < z_lo:
+        raise ValueError(f"no room for cameras above the centroid (z = {c[2]:.2f} m) below max_height {max_height} m")
+    n_views = int(n_views)
+    counts = [n_views // len(elev) + (1 if i < n_views % len(elev) else 0) for i in range(len(elev))]
+    out = []
+    for ring, (e, n) in enumerate(zip(elev, counts)):
+        step = 2 * np.pi / n
+        dz = float(np.clip(radius * np.sin(e), z_lo - c[2], z_hi - c[2]))
+        horiz = np.sqrt(max(radius * radius - dz * dz, 0.0))
+        for k in range(n):
+            az = np.radians(azimuth0_deg) + step * (k + 0.5 * (ring % 2))
+            if horiz < 1e-9:
+                eye = c + np.array([0.0, 0.0, dz])
+            else:
+                eye = c + np.array([horiz * np.cos(az), horiz * np.sin(az), dz])
+            out.append(_look_at_from(eye, c, az))
+    return np.stack(out)
+
+
+def crop_box_for(bbox_min: Sequence[float], bbox_max: Sequence[float], margin: float = 0.3,
+                 floor_z: float | None = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """A world box (lo (3,), hi (3,)) around an object's extent for object-centric renders:
+    the extent grown by ``margin`` metres, with the bottom raised to ``floor_z`` (if given) so the
+    floor, whose texture repeats across the house, is left out."""
+    lo = np.asarray(bbox_min, np.float64).reshape(3) - margin
+    hi = np.asarray(bbox_max, np.float64).reshape(3) + margin
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
+        raise ValueError("bbox must be finite with bbox_min <= bbox_max")
+    if floor_z is not None:
+        lo[2] = max(lo[2], float(floor_z))
+        hi[2] = max(hi[2], lo[2])
+    return lo, hi
+
+
+def _map_args(gmap: Any):
+    if hasattr(gmap, "render_args"):
+        return gmap.render_args()
+    if isinstance(gmap, (tuple, list)) and len(gmap) == 5:
+        return tuple(gmap)
+    raise ValueError("gmap must be a GaussianMap or a (means, quats, scales, opacities, colors) tuple")
+
+
+def render_novel_views(gmap: Any, viewmats: np.ndarray, K: np.ndarray, width: int, height: int, *,
+                       crop_box: tuple[np.ndarray, np.ndarray] | None = None,
+                       near_plane: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Render the Gaussian map from each camera.
+
+    Args:
+        gmap: a :class:`~splatsearch.gaussians.GaussianMap`, or its ``render_args()`` tuple
+            (means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), colors (N, 3)).
+        viewmats: (V, 4, 4) world-to-camera matrices (e.g. :func:`hemisphere_viewpoints`).
+        K: (3, 3) intrinsics in pixels; width, height: image size in pixels.
+        crop_box: optional world box (lo (3,), hi (3,)) in metres; Gaussians whose means lie
+            outside get zero opacity (see :func:`crop_box_for`).
+        near_plane: camera-depth culling distance in metres.
+
+    Returns:
+        (rgb (V, H, W, 3) float32 in [0, 1] on a black background, alpha (V, H, W) float32).
+    """
+    from splatsearch.rasterization import rasterize
+
+    viewmats = np.asarray(viewmats, np.float32)
+    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or len(viewmats) == 0:
+        raise ValueError(f"viewmats must have shape (V, 4, 4) with V >= 1, got {viewmats.shape}")
+    means, quats, scales, opac, colors = _map_args(gmap)
+    if crop_box is not None:
+        lo, hi = (np.asarray(b, np.float32).reshape(3) for b in crop_box)
+        m = np.asarray(means)
+        inside = np.all((m >= lo) & (m <= hi), axis=1)
+        opac = np.asarray(opac) * inside
+    rgbs, alphas = [], []
+    # one camera per call: the single-camera render is compiled once per map capacity, whereas a
+    # batched call would compile again for every new number of views
+    for vm in viewmats:
+        out = rasterize(means, quats, scales, opac, colors, vm, K, width, height, render_mode="RGB",
+                        near_plane=near_plane)
+        rgbs.append(np.asarray(out.image))
+        alphas.append(np.asarray(out.alpha)[..., 0])
+    return np.clip(np.stack(rgbs), 0.0, 1.0).astype(np.float32), np.stack(alphas).astype(np.float32)

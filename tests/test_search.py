@@ -1,0 +1,413 @@
+"""Object search: detection, lifting, object DB (eq 13), NVSM views, inpainting, matching (eq 18)."""
+
+import dataclasses
+import os
+
+import numpy as np
+import pytest
+
+from splatsearch import search
+from splatsearch import sim
+from splatsearch.search import (
+    DEFAULT_TAU_M,
+    Detection,
+    Detector,
+    Inpainter,
+    Matcher,
+    ObjectDB,
+    OpenCVInpainter,
+    SIFTMatcher,
+    SimDetector,
+    best_view,
+    hemisphere_viewpoints,
+    holes_from_alpha,
+    lift_mask_depth,
+    lift_mask_ids,
+)
+
+W, H = 320, 240
+
+
+# --------------------------------------------------------------------------------------------
+# fixtures
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def env():
+    return sim.HouseEnv(sim.make_house(0), width=W, height=H)
+
+
+_BEST_AZ: dict = {}
+
+
+def _open_side(env, obj) -> float:
+    """Azimuth (rad) around ``obj`` from which it is seen best at robot height: of 24 directions,
+    the one whose view at 1.8 m shows the most of it (furniture often stands against a wall)."""
+    if obj.instance_id not in _BEST_AZ:
+        best, best_n = 0.0, -1
+        for az in np.radians(np.arange(0, 360, 15)):
+            eye = np.array([obj.center[0] + 1.8 * np.cos(az), obj.center[1] + 1.8 * np.sin(az), sim.env.CAMERA_HEIGHT])
+            n = int((env.render_view(sim.look_at_viewmat(eye, obj.center)).instance == obj.instance_id).sum())
+            if n > best_n:
+                best, best_n = float(az), n
+        _BEST_AZ[obj.instance_id] = best
+    return _BEST_AZ[obj.instance_id]
+
+
+def _front_view(env, obj, az_off_deg, dist, z=sim.env.CAMERA_HEIGHT):
+    """Simulator frame of ``obj`` from ``dist`` metres at ``az_off_deg`` from its most open side,
+    camera at height ``z`` looking at its centre."""
+    az = _open_side(env, obj) + np.radians(az_off_deg)
+    eye = np.array([obj.center[0] + dist * np.cos(az), obj.center[1] + dist * np.sin(az), z])
+    return env.render_view(sim.look_at_viewmat(eye, obj.center))
+
+
+# --------------------------------------------------------------------------------------------
+# object database (eq 13)
+# --------------------------------------------------------------------------------------------
+
+def test_objectdb_merges_within_tau_d_by_incremental_mean():
+    db = ObjectDB(tau_d=1.0, f_O=3)
+    r1 = db.add("chair", [1.0, 2.0, 0.4], (0.0, 0.0, 0.0))
+    r2 = db.add("chair", [1.4, 2.2, 0.5], (3.0, 0.0, 0.0))
+    r3 = db.add("chair", [1.3, 2.0, 0.3], (6.0, 0.0, 0.0))
+    assert r1.created and not r2.created and not r3.created
+    assert len(db) == 1 and r1.entry_id == r2.entry_id == r3.entry_id == 0
+    e = db[0]
+    np.testing.assert_allclose(e.centroid, np.mean([[1.0, 2.0, 0.4], [1.4, 2.2, 0.5], [1.3, 2.0, 0.3]], 0))
+    assert e.n_obs == 3
+
+
+def test_objectdb_splits_beyond_tau_d_or_on_label():
+    db = ObjectDB(tau_d=1.0)
+    db.add("chair", [0.0, 0.0, 0.4], (5.0, 5.0, 0.0))
+    far = db.add("chair", [1.2, 0.0, 0.4], (5.0, 5.0, 0.0))  # 1.2 m > tau_d
+    other = db.add("sofa", [0.1, 0.0, 0.4], (5.0, 5.0, 0.0))  # close, but another label
+    assert far.created and other.created and len(db) == 3
+    np.testing.assert_allclose(db[0].centroid, [0.0, 0.0, 0.4])
+    # a new observation merges into the nearest same-label entry
+    r = db.add("chair", [0.9, 0.0, 0.4], (5.0, 5.0, 0.0))
+    assert r.entry_id == far.entry_id
+    np.testing.assert_allclose(db[far.entry_id].centroid, [1.05, 0.0, 0.4])
+
+
+def test_objectdb_nvsm_trigger_every_f_O_distinct_viewpoints():
+    db = ObjectDB(tau_d=1.0, f_O=3, pos_cell=0.5, yaw_bin_deg=30.0)
+    c = [2.0, 2.0, 0.4]
+    poses = [(0.1, 0.1, 0.0), (0.1, 0.1, 0.0), (0.2, 0.15, 0.02),  # one viewpoint (same cell and yaw bin)
+             (1.1, 0.1, 0.0), (1.1, 0.1, np.radians(60)),            # new cell; new heading
+             (2.1, 0.1, 0.0), (2.1, 0.1, 0.0),                        # 4th distinct, then a repeat
+             (3.1, 0.1, 0.0), (4.1, 0.1, 0.0)]                        # 5th, 6th
+    triggers = [db.add("chair", c, p).trigger_nvsm for p in poses]
+    assert triggers == [False, False, False, False, True, False, False, False, True]
+    assert len(db[0].viewpoints) == 6
+    assert db.pop_pending() == [0]  # queued once even though it triggered twice before popping
+    assert db.pop_pending() == []
+
+
+def test_objectdb_viewpoint_key_from_viewmat_matches_pose():
+    db = ObjectDB()
+    pose = (1.3, -0.7, np.radians(95))
+    vm = sim.camera_viewmat(*pose)
+    assert db.viewpoint_key(vm) == db.viewpoint_key(pose)
+    assert db.viewpoint_key((1.3, -0.7, np.radians(95) + 2 * np.pi)) == db.viewpoint_key(pose)
+
+
+def test_objectdb_record_match_keeps_best_and_flags_match():
+    db = ObjectDB()
+    db.add("tv_monitor", [1, 1, 1], (0, 0, 0))
+    db.record_match(0, 12, 3, tau_m=20)
+    assert db[0].e_max == 12 and not db[0].matched and db.matched() == []
+    db.record_match(0, 8, 5, tau_m=20)  # a weaker later run does not erase the evidence
+    assert db[0].e_max == 12 and db[0].best_view == 3
+    db.record_match(0, 31, 7, tau_m=20, best_viewmat=np.eye(4))
+    assert db[0].matched and db[0].best_view == 7 and db.matched()[0].id == 0 and db[0].n_nvsm == 3
+    cents, scores = db.scores()
+    assert cents.shape == (1, 3) and scores.tolist() == [31.0]
+
+
+def test_objectdb_bad_input():
+    with pytest.raises(ValueError, match="tau_d"):
+        ObjectDB(tau_d=0)
+    with pytest.raises(ValueError, match="f_O"):
+        ObjectDB(f_O=0)
+    db = ObjectDB()
+    with pytest.raises(ValueError, match="centroid"):
+        db.add("chair", [np.nan, 0, 0], (0, 0, 0))
+    with pytest.raises(ValueError, match="centroid"):
+        db.add("chair", [0, 0], (0, 0, 0))
+    with pytest.raises(ValueError, match="viewpoint pose"):
+        db.add("chair", [0, 0, 0], (0, 0))
+    with pytest.raises(ValueError, match="label"):
+        db.add("", [0, 0, 0], (0, 0, 0))
+    with pytest.raises(ValueError, match="bbox"):
+        db.add("chair", [0, 0, 0], (0, 0, 0), bbox=([1, 1, 1], [0, 0, 0]))
+
+
+# --------------------------------------------------------------------------------------------
+# lifting
+# --------------------------------------------------------------------------------------------
+
+def test_lift_mask_ids_uses_unique_ids_and_erodes_boundary():
+    means = np.zeros((10, 3))
+    means[:4] = [[1.0, 0, 0], [1.2, 0, 0], [1.0, 0.2, 0], [1.2, 0.2, 0]]  # the object
+    means[7] = [9.0, 9.0, 9.0]  # background behind the mask's border
+    top = np.full((20, 20), -1, np.int32)
+    top[5:15, 5:15] = np.arange(100).reshape(10, 10) % 4  # object ids repeat over many pixels
+    top[5, 5:15] = 7  # the mask's top row sees the background
+    mask = np.zeros((20, 20), bool)
+    mask[5:15, 5:15] = True
+    lifted = lift_mask_ids(mask, top, means, erode_px=1)
+    assert sorted(lifted.gaussian_ids.tolist()) == [0, 1, 2, 3]
+    np.testing.assert_allclose(lifted.centroid, [1.1, 0.1, 0.0])
+    # without erosion the background row bleeds in, and then the trim is what removes it
+    raw = lift_mask_ids(mask, top, means, erode_px=0, trim=None)
+    assert 7 in raw.gaussian_ids.tolist()
+    # inactive rows never count
+    act = np.ones(10, bool)
+    act[3] = False
+    assert 3 not in lift_mask_ids(mask, top, means, active=act, erode_px=1).gaussian_ids.tolist()
+    # too few Gaussians under the mask
+    assert lift_mask_ids(np.zeros((20, 20), bool), top, means) is None
+
+
+def test_lift_mask_depth_lands_on_the_object(env):
+    obj = next(o for o in env.house.objects if o.class_name == "chair")
+    f = _front_view(env, obj, 0, 1.8)
+    lifted = lift_mask_depth(f.instance == obj.instance_id, f.depth, f.viewmat, f.K)
+    lo, hi = obj.center - obj.size / 2 - 0.05, obj.center + obj.size / 2 + 0.05
+    assert np.all(lifted.centroid >= lo) and np.all(lifted.centroid <= hi)
+    assert np.all(lifted.bbox_min >= lo - 0.05) and np.all(lifted.bbox_max <= hi + 0.05)
+
+
+def test_lifting_bad_input():
+    with pytest.raises(ValueError, match="mask"):
+        lift_mask_ids(np.ones((4, 4), np.uint8), np.zeros((4, 4), np.int32), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="does not match"):
+        lift_mask_ids(np.ones((4, 5), bool), np.zeros((4, 4), np.int32), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="rows"):
+        lift_mask_ids(np.ones((4, 4), bool), np.full((4, 4), 5, np.int32), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="top_ids"):
+        lift_mask_ids(np.ones((4, 4), bool), np.zeros((4, 4), np.float32), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="viewmat"):
+        lift_mask_depth(np.ones((4, 4), bool), np.ones((4, 4)), np.eye(3), np.eye(3))
+
+
+@pytest.fixture(scope="module")
+def small_map(env):
+    """A real Mapper map of one chair from four robot views (densify only, no optimisation)."""
+    from splatsearch.mapper import Mapper, MapperConfig
+
+    obj = next(o for o in env.house.objects if o.class_name == "chair")
+    frames = [_front_view(env, obj, a, d) for a, d in ((-25, 1.7), (0, 2.0), (25, 1.7), (50, 1.9))]
+    m = Mapper(env.K, W, H, MapperConfig(iters=0, stride=2))
+    for f in frames:
+        m.update(f.rgb, f.depth, f.viewmat)
+    return obj, frames, m
+
+
+def test_lift_through_rasterize_top_ids_end_to_end(env, small_map):
+    from splatsearch import rasterization
+
+    if not hasattr(rasterization, "rasterize_top_ids"):
+        pytest.skip("rasterize_top_ids is not available")
+    obj, frames, m = small_map
+    f = frames[1]
+    ids = search.map_top_ids(m.map, f.viewmat, env.K, W, H)
+    assert ids.shape == (H, W) and ids.dtype == np.int32
+    lifted = lift_mask_ids(f.instance == obj.instance_id, ids, np.asarray(m.map.means), active=np.asarray(m.map.active))
+    assert lifted is not None and len(lifted.gaussian_ids) > 50
+    lo, hi = obj.center - obj.size / 2 - 0.1, obj.center + obj.size / 2 + 0.1
+    assert np.all(lifted.centroid >= lo) and np.all(lifted.centroid <= hi), (lifted.centroid, obj.center)
+    # agrees with the depth fallback to a few centimetres
+    by_depth = lift_mask_depth(f.instance == obj.instance_id, f.depth, f.viewmat, env.K)
+    assert np.linalg.norm(lifted.centroid - by_depth.centroid) < 0.1
+
+
+# --------------------------------------------------------------------------------------------
+# detection
+# --------------------------------------------------------------------------------------------
+
+def test_sim_detector_gives_labels_and_masks_but_no_identities(env):
+    house = env.house
+    # a view that sees two chairs at once
+    chairs = [o for o in house.objects if o.class_name == "chair"]
+    best = None
+    for a in chairs:
+        for b in chairs:
+            if a.instance_id < b.instance_id and np.linalg.norm(a.center - b.center) < 4.0:
+                mid = (a.center + b.center) / 2
+                for ang in np.radians(np.arange(0, 360, 30)):
+                    eye = [mid[0] + 2.5 * np.cos(ang), mid[1] + 2.5 * np.sin(ang), 1.6]
+                    f = env.render_view(sim.look_at_viewmat(eye, mid))
+                    n = [(f.instance == o.instance_id).sum() for o in (a, b)]
+                    if min(n) >= 300:
+                        best = (f, a, b)
+                        break
+            if best:
+                break
+        if best:
+            break
+    assert best is not None, "no view with two chairs in house 0"
+    f, a, b = best
+    dets = SimDetector(min_pixels=150).detect(f.rgb, f)
+    chair_dets = [d for d in dets if d.label == "chair"]
+    assert len(chair_dets) >= 2
+    masks = {int(a.instance_id): f.instance == a.instance_id, int(b.instance_id): f.instance == b.instance_id}
+    for m in masks.values():
+        assert sum(np.array_equal(d.mask, m) for d in chair_dets) == 1
+    # the public record carries no identity, and the order is by area, not by instance id
+    assert {fl.name for fl in dataclasses.fields(Detection)} == {"mask", "label", "score"}
+    areas = [d.n_pixels for d in dets]
+    assert areas == sorted(areas, reverse=True)
+    assert all(d.mask.dtype == bool and d.mask.shape == (H, W) and d.score == 1.0 for d in dets)
+    assert isinstance(SimDetector(), Detector)
+
+
+def test_sim_detector_filters_and_rejects_bad_input(env):
+    obj = next(o for o in env.house.objects if o.class_name == "chair")
+    f = _front_view(env, obj, 0, 1.8)
+    assert all(d.label == "sofa" for d in SimDetector(goal_classes=("sofa",)).detect(f.rgb, f))
+    assert SimDetector(min_pixels=H * W + 1).detect(f.rgb, f) == []
+    with pytest.raises(ValueError, match="simulator frame"):
+        SimDetector().detect(f.rgb)
+    with pytest.raises(ValueError, match="rgb"):
+        SimDetector().detect(f.rgb[..., 0], f)
+    with pytest.raises(ValueError, match="unknown class"):
+        SimDetector(goal_classes=("unicorn",))
+    with pytest.raises(ValueError, match="mask"):
+        Detection(np.ones((4, 4)), "chair", 0.5)
+    with pytest.raises(ValueError, match="score"):
+        Detection(np.ones((4, 4), bool), "chair", 1.5)
+
+
+def test_model_adapters_need_local_files(tmp_path):
+    missing = tmp_path / "nope.pt"
+    with pytest.raises(FileNotFoundError, match="never downloaded"):
+        search.UltralyticsDetector(missing)
+    with pytest.raises(FileNotFoundError, match="never downloaded"):
+        search.LoFTRMatcher(missing)
+    with pytest.raises(FileNotFoundError, match="never downloaded"):
+        search.DiffusionInpainter(missing)
+    # an existing file without the package installed fails clearly on first use, not at import
+    fake = tmp_path / "w.pt"
+    fake.write_bytes(b"\0")
+    img = np.zeros((H, W, 3), np.float32)
+    for mod, make, call in (("ultralytics", lambda: search.UltralyticsDetector(fake), lambda o: o.detect(img)),
+                            ("kornia", lambda: search.LoFTRMatcher(fake), lambda o: o.count(img, img))):
+        try:
+            __import__(mod)
+        except ImportError:
+            with pytest.raises(ImportError, match=f"{mod}|torch"):
+                call(make())
+
+
+# --------------------------------------------------------------------------------------------
+# NVSM viewpoints and renders
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("elevs", [(35.0,), (20.0, 55.0), (90.0,)])
+def test_hemisphere_viewpoints_look_at_the_centroid_from_above(elevs):
+    c = np.array([2.0, -1.0, 0.45])
+    K = sim.intrinsics(W, H)
+    vms = hemisphere_viewpoints(c, radius=1.5, n_views=12, elevations_deg=elevs)
+    assert vms.shape == (12, 4, 4)
+    for vm in vms:
+        R = vm[:3, :3]
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) > 0
+        p = R @ c + vm[:3, 3]
+        assert p[2] > 0
+        np.testing.assert_allclose(p[2], 1.5, atol=1e-9)  # on the sphere, looking straight at it
+        u, v = K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]
+        np.testing.assert_allclose([u, v], [W / 2, H / 2], atol=1e-4)
+        eye = -R.T @ vm[:3, 3]
+        assert eye[2] > c[2]
+        assert R[0, 2] == pytest.approx(0.0, abs=1e-9)  # no roll: the image x axis stays horizontal
+    if len(elevs) == 1 and elevs[0] < 90:
+        eyes = np.array([-vm[:3, :3].T @ vm[:3, 3] for vm in vms])
+        az = np.degrees(np.arctan2(eyes[:, 1] - c[1], eyes[:, 0] - c[0]))
+        np.testing.assert_allclose(np.diff(np.unwrap(np.radians(az))), np.radians(30), atol=1e-9)
+
+
+def test_hemisphere_viewpoints_respect_ceiling_and_floor():
+    c = np.array([0.0, 0.0, 1.9])  # a tall object's centroid: 1.5 m up would hit the ceiling
+    vms = hemisphere_viewpoints(c, 1.5, 8, (60.0,), max_height=2.4)
+    eyes = np.array([-vm[:3, :3].T @ vm[:3, 3] for vm in vms])
+    assert np.all(eyes[:, 2] <= 2.4 + 1e-9) and np.all(eyes[:, 2] > c[2])
+    np.testing.assert_allclose(np.linalg.norm(eyes - c, axis=1), 1.5)
+    low = hemisphere_viewpoints([0, 0, 0.05], 1.0, 4, (5.0,), min_height=0.3)
+    assert np.all(np.array([-vm[:3, :3].T @ vm[:3, 3] for vm in low])[:, 2] >= 0.3 - 1e-9)
+    with pytest.raises(ValueError, match="no room"):
+        hemisphere_viewpoints([0, 0, 2.45], 1.5, 4, max_height=2.4)
+
+
+def test_hemisphere_viewpoints_bad_input():
+    for kw in ({"radius": 0}, {"n_views": 0}, {"elevations_deg": (0.0,)}, {"elevations_deg": (95.0,)},
+               {"elevations_deg": ()}):
+        with pytest.raises(ValueError):
+            hemisphere_viewpoints([0, 0, 0.5], **kw)
+    with pytest.raises(ValueError, match="centroid"):
+        hemisphere_viewpoints([0, np.inf, 0.5])
+
+
+def test_render_novel_views_of_a_real_map(env, small_map):
+    obj, frames, m = small_map
+    c = obj.center
+    vms = hemisphere_viewpoints(c, 1.5, 4, (35.0,), azimuth0_deg=np.degrees(np.arctan2(-np.cos(obj.yaw), np.sin(obj.yaw))))
+    rgb, alpha = search.render_novel_views(m.map, vms, env.K, W, H)
+    assert rgb.shape == (4, H, W, 3) and alpha.shape == (4, H, W) and rgb.dtype == np.float32
+    assert 0.0 <= rgb.min() and rgb.max() <= 1.0
+    assert alpha[0, H // 2 - 10:H // 2 + 10, W // 2 - 10:W // 2 + 10].mean() > 0.5  # the chair is in the middle
+    # cropping to the chair's box hides the room around it
+    box = search.crop_box_for(obj.center - obj.size / 2, obj.center + obj.size / 2, margin=0.1)
+    rgb_c, alpha_c = search.render_novel_views(m.map, vms[:1], env.K, W, H, crop_box=box)
+    assert (alpha_c[0] > 0.5).mean() < 0.5 * (alpha[0] > 0.5).mean()
+    with pytest.raises(ValueError, match="viewmats"):
+        search.render_novel_views(m.map, np.eye(4), env.K, W, H)
+    with pytest.raises(ValueError, match="gmap"):
+        search.render_novel_views(object(), vms, env.K, W, H)
+
+
+# --------------------------------------------------------------------------------------------
+# inpainting
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method", ["telea", "ns"])
+def test_inpainter_fills_holes_from_their_surroundings(method):
+    img = np.zeros((2, 60, 80, 3), np.float32)
+    img[:, :, :40] = [0.9, 0.1, 0.1]
+    img[:, :, 40:] = [0.1, 0.2, 0.8]
+    holes = np.zeros((2, 60, 80), bool)
+    holes[0, 20:35, 10:25] = True  # inside the red half
+    holes[1, 25:35, 55:70] = True  # inside the blue half
+    rendered = img.copy()
+    rendered[holes] = 0.0  # what an unobserved region looks like in a render
+    out = OpenCVInpainter(method=method).inpaint(rendered, holes)
+    assert out.shape == img.shape and out.dtype == np.float32
+    np.testing.assert_array_equal(out[~holes], rendered[~holes])
+    assert np.abs(out[0][holes[0]] - [0.9, 0.1, 0.1]).max() < 0.05
+    assert np.abs(out[1][holes[1]] - [0.1, 0.2, 0.8]).max() < 0.05
+    # an all-hole view has nothing to propagate from and is returned unchanged
+    full = np.ones((1, 60, 80), bool)
+    np.testing.assert_array_equal(OpenCVInpainter(method=method).inpaint(rendered[:1], full), rendered[:1])
+    assert isinstance(OpenCVInpainter(), Inpainter)
+
+
+def test_holes_from_alpha_and_inpainter_bad_input():
+    a = np.array([[[0.2, 0.6], [0.5, 0.49]]])
+    np.testing.assert_array_equal(holes_from_alpha(a), [[[True, False], [False, True]]])
+    np.testing.assert_array_equal(holes_from_alpha(a[..., None], tau=0.3), [[[True, False], [False, False]]])
+    with pytest.raises(ValueError, match="alpha"):
+        holes_from_alpha(np.zeros(5))
+    with pytest.raises(ValueError, match="tau"):
+        holes_from_alpha(a, tau=2)
+    inp = OpenCVInpainter()
+    with pytest.raises(ValueError, match="images"):
+        inp.inpaint(np.zeros((8, 8, 3)), np.zeros((8, 8), bool))
+    with pytest.raises(ValueError, match="masks"):
+        inp.inpaint(np.zeros((1, 8, 8, 3)), np.zeros((1, 8, 8)))
+    with pytest.raises(ValueError, match="NaN"):
+        inp.inpaint(np.full((1, 8, 8, 3), np.nan), np.zeros((1, 8, 8), bool))
+    with pytest.raises(ValueError, match="method"):
+        OpenCVInpainter(method="magic")
