@@ -1,13 +1,11 @@
 """Object search: detection, lifting, object DB (eq 13), NVSM views, inpainting, matching (eq 18)."""
 
 import dataclasses
-import os
 
 import numpy as np
 import pytest
 
-from splatsearch import search
-from splatsearch import sim
+from splatsearch import search, sim
 from splatsearch.search import (
     DEFAULT_TAU_M,
     Detection,
@@ -294,7 +292,9 @@ def test_model_adapters_need_local_files(tmp_path):
     fake.write_bytes(b"\0")
     img = np.zeros((H, W, 3), np.float32)
     for mod, make, call in (("ultralytics", lambda: search.UltralyticsDetector(fake), lambda o: o.detect(img)),
-                            ("kornia", lambda: search.LoFTRMatcher(fake), lambda o: o.count(img, img))):
+                            ("kornia", lambda: search.LoFTRMatcher(fake), lambda o: o.count(img, img)),
+                            ("diffusers", lambda: search.DiffusionInpainter(tmp_path),
+                             lambda o: o.inpaint(img[None], np.ones((1, H, W), bool)))):
         try:
             __import__(mod)
         except ImportError:
@@ -352,7 +352,7 @@ def test_hemisphere_viewpoints_bad_input():
 
 
 def test_render_novel_views_of_a_real_map(env, small_map):
-    obj, frames, m = small_map
+    obj, _frames, m = small_map
     c = obj.center
     vms = hemisphere_viewpoints(c, 1.5, 4, (35.0,), azimuth0_deg=np.degrees(np.arctan2(-np.cos(obj.yaw), np.sin(obj.yaw))))
     rgb, alpha = search.render_novel_views(m.map, vms, env.K, W, H)
@@ -361,7 +361,7 @@ def test_render_novel_views_of_a_real_map(env, small_map):
     assert alpha[0, H // 2 - 10:H // 2 + 10, W // 2 - 10:W // 2 + 10].mean() > 0.5  # the chair is in the middle
     # cropping to the chair's box hides the room around it
     box = search.crop_box_for(obj.center - obj.size / 2, obj.center + obj.size / 2, margin=0.1)
-    rgb_c, alpha_c = search.render_novel_views(m.map, vms[:1], env.K, W, H, crop_box=box)
+    _rgb_c, alpha_c = search.render_novel_views(m.map, vms[:1], env.K, W, H, crop_box=box)
     assert (alpha_c[0] > 0.5).mean() < 0.5 * (alpha[0] > 0.5).mean()
     with pytest.raises(ValueError, match="viewmats"):
         search.render_novel_views(m.map, np.eye(4), env.K, W, H)
@@ -394,6 +394,20 @@ def test_inpainter_fills_holes_from_their_surroundings(method):
     assert isinstance(OpenCVInpainter(), Inpainter)
 
 
+def test_split_holes_separates_background_from_enclosed_gaps():
+    holes = np.ones((30, 40), bool)
+    holes[5:25, 10:30] = False  # a rendered object in the middle...
+    holes[12:16, 18:22] = True  # ...with an unobserved gap inside it
+    interior, exterior = search.split_holes(holes)
+    assert interior.sum() == 16 and interior[12:16, 18:22].all()
+    np.testing.assert_array_equal(interior | exterior, holes)
+    assert not (interior & exterior).any()
+    i3, _e3 = search.split_holes(holes[None])
+    np.testing.assert_array_equal(i3[0], interior)
+    with pytest.raises(ValueError, match="holes"):
+        search.split_holes(holes.astype(np.uint8))
+
+
 def test_holes_from_alpha_and_inpainter_bad_input():
     a = np.array([[[0.2, 0.6], [0.5, 0.49]]])
     np.testing.assert_array_equal(holes_from_alpha(a), [[[True, False], [False, True]]])
@@ -411,3 +425,112 @@ def test_holes_from_alpha_and_inpainter_bad_input():
         inp.inpaint(np.full((1, 8, 8, 3), np.nan), np.zeros((1, 8, 8), bool))
     with pytest.raises(ValueError, match="method"):
         OpenCVInpainter(method="magic")
+
+
+# --------------------------------------------------------------------------------------------
+# matching (eq 18)
+# --------------------------------------------------------------------------------------------
+
+def _pair_views(env, a_id, b_id):
+    """Views of object ``a_id`` from two robot-height viewpoints 15 degrees and 0.2 m apart, and a
+    view of ``b_id``, another instance of the same class with its own materials."""
+    a, b = env.house.object(a_id), env.house.object(b_id)
+    assert a.class_name == b.class_name
+    return _front_view(env, a, -15, 1.8).rgb, _front_view(env, a, 0, 2.0).rgb, _front_view(env, b, 0, 2.0).rgb
+
+
+@pytest.mark.parametrize("a_id, b_id", [(47, 35), (48, 34)])  # house 0: two TVs, two sofas
+def test_sift_matcher_separates_same_from_other_instance(env, a_id, b_id):
+    m = SIFTMatcher()
+    assert isinstance(m, Matcher)
+    a1, a2, b = _pair_views(env, a_id, b_id)
+    same, other = m.count(a1, a2), m.count(a1, b)
+    assert same >= DEFAULT_TAU_M > other, (same, other)
+    assert m.count(a1, a1) > 100  # an image against itself
+    # counting is deterministic (RANSAC is seeded) and the goal's cached features change nothing
+    assert m.count(a1, a2) == same and SIFTMatcher().count(a1, a2) == same
+
+
+def test_best_view_picks_the_argmax(env):
+    a1, a2, b = _pair_views(env, 47, 35)
+    bv = best_view(a1, np.stack([b, a2, np.full((H, W, 3), 0.5, np.float32)]), SIFTMatcher())
+    assert bv.i_star == 1 and bv.e_max == bv.counts[1] == bv.counts.max()
+    assert bv.counts.shape == (3,) and bv.counts[2] == 0  # a flat image has no features
+
+
+def test_matching_bad_input():
+    m = SIFTMatcher()
+    img = np.random.default_rng(0).random((H, W, 3)).astype(np.float32)
+    with pytest.raises(ValueError, match="goal"):
+        m.count(img[..., 0], img)
+    with pytest.raises(ValueError, match="image"):
+        m.count(img, np.full_like(img, np.nan))
+    with pytest.raises(ValueError, match="at least one"):
+        best_view(img, [], m)
+    for kw in ({"ratio": 1.2}, {"ransac_thresh": 0}, {"model": "affine"}, {"min_matches": 2}):
+        with pytest.raises(ValueError):
+            SIFTMatcher(**kw)
+    with pytest.raises(ValueError, match="differ"):
+        search.ransac_inliers(np.zeros((10, 2)), np.zeros((9, 2)))
+
+
+# --------------------------------------------------------------------------------------------
+# the object side of a search step
+# --------------------------------------------------------------------------------------------
+
+def test_object_search_observes_lifts_and_verifies(env, small_map):
+    from splatsearch import rasterization
+
+    obj, frames, m = small_map
+    osearch = search.ObjectSearch(env.K, W, H, SimDetector(), labels=["chair"], db=ObjectDB(f_O=3),
+                                  nvsm=search.NVSMConfig(n_views=6))
+    use_map = m.map if hasattr(rasterization, "rasterize_top_ids") else None
+    results = []
+    for f in frames:
+        results += osearch.observe(f.rgb, f.depth, f.viewmat, use_map, frame=f)
+    assert results and all(d.label == "chair" for d, _ in results)
+    mine = [e for e in osearch.db if np.linalg.norm(e.centroid[:2] - obj.center[:2]) < 0.5]
+    assert len(mine) == 1  # several views of one chair make one entry
+    e = mine[0]
+    seen = sum(int((f.instance == obj.instance_id).sum() >= 150) for f in frames)
+    assert e.n_obs == len(e.viewpoints) == seen >= 3 and e.bbox_min is not None
+    # its third distinct viewpoint queued the NVSM
+    goal = frames[1].rgb
+    scores = osearch.verify_pending(goal, m.map)
+    assert e.id in scores
+    s = scores[e.id]
+    assert s.images.shape == (6, H, W, 3) and s.viewmats.shape == (6, 4, 4) and s.counts.shape == (6,)
+    assert osearch.db[e.id].e_max == s.e_max and osearch.db[e.id].n_nvsm == 1
+    assert osearch.verify_pending(goal, m.map) == {}
+    # the cropped variant renders and scores too
+    osearch.nvsm = search.NVSMConfig(n_views=6, crop=True)
+    s2 = osearch.verify(e.id, goal, m.map)
+    assert s2.images.shape == (6, H, W, 3) and osearch.db[e.id].n_nvsm == 2
+    with pytest.raises(ValueError, match="expected rgb"):
+        osearch.observe(frames[0].rgb[:10], frames[0].depth, frames[0].viewmat)
+
+
+@pytest.mark.slow
+def test_nvsm_verification_ranks_the_goal_instance_first_on_real_maps(env):
+    """Whole chain on optimised Gaussian maps: three TVs of house 0, each mapped from five robot
+    views; for a goal image of one of them, its NVSM e_max must beat the other two's. (~2 min)"""
+    from splatsearch.mapper import Mapper, MapperConfig
+    from splatsearch.sim.episodes import sample_goal_camera
+
+    tvs = (47, 35, 41)
+    maps = {}
+    for i in tvs:
+        o = env.house.object(i)
+        frames = [_front_view(env, o, a, d) for a, d in ((-40, 1.8), (-15, 2.2), (10, 1.7), (35, 2.0), (60, 2.3))]
+        m = Mapper(env.K, W, H, MapperConfig(iters=30, stride=2))
+        for f in frames:
+            m.update(f.rgb, f.depth, f.viewmat)
+        ids = search.map_top_ids(m.map, frames[2].viewmat, env.K, W, H)
+        lifted = lift_mask_ids(frames[2].instance == i, ids, np.asarray(m.map.means), active=np.asarray(m.map.active))
+        assert np.linalg.norm(lifted.centroid - o.center) < 0.4
+        maps[i] = (m.map, lifted)
+    for goal_id, split in ((47, "val"), (41, "val"), (41, "val-hard")):
+        vm = sample_goal_camera(env, env.house.object(goal_id), split, np.random.default_rng([0, goal_id]), W, H)
+        goal = env.render_view(vm).rgb
+        e = {i: search.verify_object(goal, gm, lf.centroid, env.K, W, H).e_max for i, (gm, lf) in maps.items()}
+        assert e[goal_id] > max(v for i, v in e.items() if i != goal_id), (goal_id, split, e)

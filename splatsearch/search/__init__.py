@@ -12,9 +12,29 @@ Modules: ``detection`` (Detector, Detection, SimDetector, UltralyticsDetector), 
 SIFTMatcher, LoFTRMatcher, best_view of eq 18), ``object_search`` (verify_object, ObjectSearch).
 """
 
-from .detection import COCO_TO_GOAL, Detection, Detector, SimDetector, UltralyticsDetector
-from .inpainting import DiffusionInpainter, Inpainter, OpenCVInpainter, holes_from_alpha
-from .matching import DEFAULT_TAU_M, BestView, LoFTRMatcher, Matcher, SIFTMatcher, best_view, ransac_inliers
+from .detection import (
+    COCO_TO_GOAL,
+    Detection,
+    Detector,
+    SimDetector,
+    UltralyticsDetector,
+)
+from .inpainting import (
+    DiffusionInpainter,
+    Inpainter,
+    OpenCVInpainter,
+    holes_from_alpha,
+    split_holes,
+)
+from .matching import (
+    DEFAULT_TAU_M,
+    BestView,
+    LoFTRMatcher,
+    Matcher,
+    SIFTMatcher,
+    best_view,
+    ransac_inliers,
+)
 from .novel_views import crop_box_for, hemisphere_viewpoints, render_novel_views
 from .object_search import NVSMConfig, ObjectScore, ObjectSearch, verify_object
 from .objects import (
@@ -34,5 +54,5 @@ __all__ = [
     "Inpainter", "LiftedObject", "LoFTRMatcher", "Matcher", "NVSMConfig", "ObjectDB", "ObjectEntry", "ObjectScore",
     "ObjectSearch", "OpenCVInpainter", "SIFTMatcher", "SimDetector", "UltralyticsDetector", "backproject_mask",
     "best_view", "crop_box_for", "erode_mask", "hemisphere_viewpoints", "holes_from_alpha", "lift_mask_depth",
-    "lift_mask_ids", "map_top_ids", "ransac_inliers", "render_novel_views", "verify_object",
+    "lift_mask_ids", "map_top_ids", "ransac_inliers", "render_novel_views", "split_holes", "verify_object",
 ]

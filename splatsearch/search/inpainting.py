@@ -66,7 +66,7 @@ def split_holes(holes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for hv, ev in zip(stack, ext):
         if not hv.any():
             continue
-        n, lab = cv2.connectedComponents(hv.astype(np.uint8), connectivity=8)
+        _n, lab = cv2.connectedComponents(hv.astype(np.uint8), connectivity=8)
         border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
         border = border[border > 0]
         ev[:] = np.isin(lab, border)
@@ -188,10 +188,10 @@ class DiffusionInpainter:
     def inpaint(self, images: np.ndarray, masks: np.ndarray) -> np.ndarray:
         """(N, H, W, 3) float32 with the masked pixels repainted by the diffusion model."""
         images, masks = _check_stack(images, masks)
+        pipe = self._load()  # first, so a missing package fails with the clear message
         import torch
         from PIL import Image
 
-        pipe = self._load()
         out = images.copy()
         N, H, W = masks.shape
         # latent diffusion works on multiples of 8 pixels

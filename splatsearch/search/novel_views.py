@@ -12,7 +12,8 @@ do not produce feature matches between the goal image and views of the wrong obj
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -8,16 +8,24 @@ when it wants the due NVSM runs done.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from .detection import Detection, Detector
-from .inpainting import Inpainter, OpenCVInpainter, holes_from_alpha
+from .inpainting import Inpainter, OpenCVInpainter, holes_from_alpha, split_holes
 from .matching import DEFAULT_TAU_M, Matcher, SIFTMatcher, best_view
 from .novel_views import crop_box_for, hemisphere_viewpoints, render_novel_views
-from .objects import AddResult, LiftedObject, ObjectDB, lift_mask_depth, lift_mask_ids, map_top_ids
+from .objects import (
+    AddResult,
+    LiftedObject,
+    ObjectDB,
+    lift_mask_depth,
+    lift_mask_ids,
+    map_top_ids,
+)
 
 
 class ObjectScore(NamedTuple):
@@ -27,7 +35,8 @@ class ObjectScore(NamedTuple):
         i_star: index of the best view (eq 18); e_max: its match count; counts: (V,) per view.
         matched: ``e_max >= tau_m``.
         viewmats: (V, 4, 4) the NVSM cameras; images: (V, H, W, 3) the completed views;
-        holes: (V, H, W) bool, the pixels that were inpainted.
+        holes: (V, H, W) bool, the pixels that were inpainted (for a cropped render, not the
+            flat-filled background).
     """
 
     i_star: int
@@ -47,8 +56,12 @@ class NVSMConfig:
         radius: r_v in metres. n_views: N_R. elevations_deg: ring elevations.
         alpha_tau: render pixels with accumulated opacity below this are holes to inpaint.
         crop: render only the Gaussians in the object's box (see
-            :func:`~splatsearch.search.novel_views.crop_box_for`); needs the entry's extent.
+            :func:`~splatsearch.search.novel_views.crop_box_for`); needs the entry's extent. Off
+            by default, as in the thesis: on ground-truth renders the object's surroundings carry
+            much of the same-instance evidence (textureless TVs matched only through their
+            walls), and cropping lowered the goal instance's e_max more than the others'.
         crop_margin: metres added around the extent. floor_z: crop floor height (None keeps it).
+        crop_fill: grey level given to the background cut away by the crop.
         tau_m: match threshold on e_max.
     """
 
@@ -56,9 +69,10 @@ class NVSMConfig:
     n_views: int = 12
     elevations_deg: tuple = (35.0,)
     alpha_tau: float = 0.5
-    crop: bool = True
+    crop: bool = False
     crop_margin: float = 0.3
     floor_z: float | None = 0.05
+    crop_fill: float = 0.5
     tau_m: float = DEFAULT_TAU_M
 
 
@@ -85,6 +99,12 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
         box = crop_box_for(bbox[0], bbox[1], cfg.crop_margin, cfg.floor_z)
     rgb, alpha = render_novel_views(gmap, vms, K, width, height, crop_box=box)
     holes = holes_from_alpha(alpha, cfg.alpha_tau)
+    if box is not None:
+        # around a cropped object the holes are mostly background that was cut away; inpainting
+        # it would smear the object outwards, so it gets a flat colour and only enclosed gaps are
+        # completed
+        holes, outside = split_holes(holes)
+        rgb[outside] = cfg.crop_fill
     images = inpainter.inpaint(rgb, holes)
     bv = best_view(goal, images, matcher)
     return ObjectScore(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes)

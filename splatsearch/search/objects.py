@@ -228,10 +228,12 @@ class ObjectDB:
     """Object database D_O (eq 13) with merging and the NVSM trigger.
 
     Args:
-        tau_d: merge distance in metres between centroids of the same label. Default 1.0 m: the
-            surface centroid of one object seen from different sides moves by up to about half
-            its size (a 2 m sofa: ~0.5 m), while separate same-class objects in our houses are
-            mostly > 1 m apart (a tighter tau_d splits big objects into several entries).
+        tau_d: merge distance in metres between centroids of the same label. Default 1.0 m: a
+            lifted centroid is the mean of the *visible* surface, 0.1-0.5 m from the object's box
+            centre in our measurements (single views of chairs to TVs and sofas), and moves by
+            up to about half the object's size between opposite sides; separate same-class
+            objects are further apart (over 40 procedural houses, 1.4% of same-class pairs are
+            closer than 1.0 m, all of them chairs, the closest 0.64 m).
         f_O: run the NVSM when an entry's distinct-viewpoint count is a multiple of f_O.
         pos_cell: viewpoint quantisation of the camera position (x, y) in metres.
         yaw_bin_deg: viewpoint quantisation of the camera heading in degrees.
@@ -280,7 +282,7 @@ class ObjectDB:
             raise ValueError(f"viewpoint pose must be (x, y, yaw) or a (4, 4) viewmat, got shape {p.shape}")
         if not np.all(np.isfinite(p)):
             raise ValueError("viewpoint pose contains NaN or Inf")
-        n_bins = max(1, int(round(2 * np.pi / self.yaw_bin)))
+        n_bins = max(1, round(2 * np.pi / self.yaw_bin))
         return (int(np.floor(x / self.pos_cell)), int(np.floor(y / self.pos_cell)),
                 int(np.round(yaw / self.yaw_bin)) % n_bins)
 
