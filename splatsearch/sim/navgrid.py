@@ -1,19 +1,23 @@
 """Ground-truth navigable grid of a house and FMM geodesic distances (scikit-fmm).
 
-Grid convention (the one place it is written down): ``grid[row, col]`` covers the world square
-``x in [ox + col*c, ox + (col+1)*c)``, ``y in [oy + row*c, oy + (row+1)*c)`` with
-``origin_xy = (ox, oy)`` and ``cell_size = c`` metres; cell centres are at +0.5.
+The grid convention is :class:`splatsearch.nav.grid.GridSpec`'s: ``grid[row, col]`` covers
+``x in [ox + col*c, ox + (col+1)*c)``, ``y in [oy + row*c, oy + (row+1)*c)``; cell centres are
+at +0.5. Cell conversions and the FMM solver are the nav layer's, so ground truth and the
+robot's own maps can never disagree on them.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import skfmm
 import warp as wp
 from scipy import ndimage
+
+from splatsearch.nav.fmm import geodesic_distance as _nav_geodesic
+from splatsearch.nav.grid import GridSpec
 
 from .house import House
 
@@ -38,18 +42,18 @@ class NavGrid:
     def shape(self) -> tuple[int, int]:
         return self.navigable.shape
 
+    @functools.cached_property
+    def spec(self) -> GridSpec:
+        """The grid's placement as a :class:`splatsearch.nav.grid.GridSpec` (same convention)."""
+        return GridSpec(tuple(self.origin_xy), self.cell_size, self.shape)
+
     def world_to_cell(self, xy) -> np.ndarray:
         """(..., 2) world x, y in metres -> (..., 2) int (row, col); may be out of bounds."""
-        xy = np.asarray(xy, np.float64)
-        col = np.floor((xy[..., 0] - self.origin_xy[0]) / self.cell_size)
-        row = np.floor((xy[..., 1] - self.origin_xy[1]) / self.cell_size)
-        return np.stack([row, col], -1).astype(np.int64)
+        return self.spec.world_to_cell(xy)
 
     def cell_to_world(self, rc) -> np.ndarray:
         """(..., 2) (row, col) -> (..., 2) world x, y of the cell centres."""
-        rc = np.asarray(rc, np.float64)
-        return np.stack([self.origin_xy[0] + (rc[..., 1] + 0.5) * self.cell_size,
-                         self.origin_xy[1] + (rc[..., 0] + 0.5) * self.cell_size], -1)
+        return self.spec.cell_to_world(rc)
 
     def in_bounds(self, rc) -> bool:
         r, c = int(rc[0]), int(rc[1])
@@ -68,27 +72,11 @@ class NavGrid:
 
 
 def geodesic_distance(free: np.ndarray, targets: np.ndarray, cell_size: float) -> np.ndarray:
-    """Geodesic distance through ``free`` cells to ``targets`` (scikit-fmm); inf if unreachable."""
-    targets = targets & free
-    out = np.full(free.shape, np.inf)
-    if not targets.any():
-        return out
-    phi = np.where(targets, -1.0, 1.0)
-    phi = np.ma.MaskedArray(phi, mask=~free)
-    try:
-        d = skfmm.distance(phi, dx=cell_size)
-    except ValueError:  # no free cell borders a target: nothing but the targets is reachable
-        out[targets] = 0.0
-        return out
-    vals = np.ma.filled(d, np.inf)
-    # skfmm measures from the zero level set between target and free cells: targets get 0
-    vals = np.where(targets, 0.0, np.maximum(vals + 0.5 * cell_size, 0.0))
-    vals[~free] = np.inf
-    # masked-out islands that FMM never reached keep their initial phi: mark them unreachable
-    lab, _ = ndimage.label(free)
-    reach = np.unique(lab[targets])
-    vals[~np.isin(lab, reach)] = np.inf
-    return vals
+    """Geodesic distance (m) through ``free`` cells to ``targets`` (scikit-fmm); inf if unreachable.
+
+    The simulator and the robot's planner share one solver: :func:`splatsearch.nav.fmm.geodesic_distance`.
+    """
+    return _nav_geodesic(free, targets, cell_size)
 
 
 def _clip_band(tri: np.ndarray, lo: float, hi: float) -> np.ndarray:
