@@ -28,12 +28,16 @@ import numpy as np
 
 from splatsearch.mapper import Mapper, MapperConfig
 from splatsearch.nav.encoders import ColorTextureEncoder, ImageEncoder
-from splatsearch.nav.exploration import ExplorationConfig, ExplorationPlanner, ObjectScore
+from splatsearch.nav.exploration import (
+    ExplorationConfig,
+    ExplorationPlanner,
+    ObjectScore,
+)
 from splatsearch.nav.grid import GridSpec
 from splatsearch.search.detection import Detector, SimDetector
-from splatsearch.search.inpainting import Inpainter, OpenCVInpainter, holes_from_alpha
-from splatsearch.search.matching import DEFAULT_TAU_M, Matcher, SIFTMatcher, best_view
-from splatsearch.search.novel_views import hemisphere_viewpoints, render_novel_views
+from splatsearch.search.inpainting import Inpainter, OpenCVInpainter
+from splatsearch.search.matching import DEFAULT_TAU_M, Matcher, SIFTMatcher
+from splatsearch.search.object_search import NVSMConfig, verify_object
 from splatsearch.search.objects import ObjectDB, lift_mask_ids, map_top_ids
 
 VARIANTS = ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav")
@@ -141,6 +145,9 @@ class SplatSearchAgent:
         self.mapper = Mapper(self.mK.astype(np.float32), self.mW, self.mH,
                              MapperConfig(iters=cfg.map_iters, stride=cfg.map_stride, seed=cfg.seed))
         self.db = ObjectDB(tau_d=cfg.tau_d, f_O=cfg.f_O)
+        self._nvsm = NVSMConfig(radius=cfg.view_radius, n_views=cfg.n_views,
+                                elevations_deg=tuple(cfg.view_elevations_deg), alpha_tau=cfg.inpaint_tau,
+                                tau_m=cfg.tau_m, inpaint=cfg.variant != "no_inpaint")
         self.frame_index = 0
         self.nvsm_runs = 0
         self.last_views: NovelViews | None = None
@@ -208,18 +215,13 @@ class SplatSearchAgent:
     def _run_nvsm(self, eid: int) -> None:
         cfg = self.cfg
         e = self.db[eid]
-        vms = hemisphere_viewpoints(e.centroid, cfg.view_radius, cfg.n_views, cfg.view_elevations_deg)
         # the whole map is rendered, not a crop around the object: the goal image shows the
         # object in its surroundings, and those surroundings carry many of the matches
-        rendered, alpha = render_novel_views(self.mapper.map, vms, self.K, self.W, self.H)
-        if cfg.variant == "no_inpaint":
-            views = rendered
-        else:
-            views = self.inpainter.inpaint(rendered, holes_from_alpha(alpha, cfg.inpaint_tau))
-        bv = best_view(self.goal, views, self.matcher)
-        self.db.record_match(eid, float(bv.e_max), bv.i_star, cfg.tau_m, vms[bv.i_star])
+        score = verify_object(self.goal, self.mapper.map, e.centroid, self.K, self.W, self.H,
+                              matcher=self.matcher, inpainter=self.inpainter, config=self._nvsm)
+        self.db.record_match(eid, float(score.e_max), score.i_star, cfg.tau_m, score.viewmats[score.i_star])
         self.nvsm_runs += 1
-        self.last_views = NovelViews(eid, vms, rendered, views, bv.counts, bv.i_star)
+        self.last_views = NovelViews(eid, score.viewmats, score.rendered, score.images, score.counts, score.i_star)
 
     # -- planning -------------------------------------------------------------------------------
     def _decide(self, pose, *, after_exploring: bool = False) -> tuple[str, str]:

@@ -36,7 +36,7 @@ class ObjectScore(NamedTuple):
         matched: ``e_max >= tau_m``.
         viewmats: (V, 4, 4) the NVSM cameras; images: (V, H, W, 3) the completed views;
         holes: (V, H, W) bool, the pixels that were inpainted (for a cropped render, not the
-            flat-filled background).
+            flat-filled background); rendered: (V, H, W, 3) the views before completion.
     """
 
     i_star: int
@@ -46,6 +46,7 @@ class ObjectScore(NamedTuple):
     viewmats: np.ndarray
     images: np.ndarray
     holes: np.ndarray
+    rendered: np.ndarray
 
 
 @dataclass
@@ -63,6 +64,8 @@ class NVSMConfig:
         crop_margin: metres added around the extent. floor_z: crop floor height (None keeps it).
         crop_fill: grey level given to the background cut away by the crop.
         tau_m: match threshold on e_max.
+        inpaint: complete the holes before matching (False: match the raw renders, the thesis'
+            "without inpainting" ablation).
     """
 
     radius: float = 1.5
@@ -74,6 +77,7 @@ class NVSMConfig:
     floor_z: float | None = 0.05
     crop_fill: float = 0.5
     tau_m: float = DEFAULT_TAU_M
+    inpaint: bool = True
 
 
 def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.ndarray, width: int, height: int, *,
@@ -105,9 +109,9 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
         # completed
         holes, outside = split_holes(holes)
         rgb[outside] = cfg.crop_fill
-    images = inpainter.inpaint(rgb, holes)
+    images = inpainter.inpaint(rgb, holes) if cfg.inpaint else rgb
     bv = best_view(goal, images, matcher)
-    return ObjectScore(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes)
+    return ObjectScore(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes, rgb)
 
 
 class ObjectSearch:
