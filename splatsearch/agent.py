@@ -21,7 +21,7 @@ observation of each detection instead of rendered views), ``no_inpaint``, ``near
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -36,6 +36,12 @@ from splatsearch.nav.exploration import (
 from splatsearch.nav.grid import GridSpec
 from splatsearch.search.detection import Detector, SimDetector
 from splatsearch.search.inpainting import Inpainter, OpenCVInpainter
+from splatsearch.search.local_map import (
+    LocalMapConfig,
+    ObservationStore,
+    build_local_map,
+    region_box,
+)
 from splatsearch.search.matching import DEFAULT_TAU_M, Matcher, SIFTMatcher
 from splatsearch.search.object_search import NVSMConfig, verify_object
 from splatsearch.search.objects import ObjectDB, lift_mask_ids, map_top_ids
@@ -52,6 +58,14 @@ class AgentConfig:
     camera; map_iters / map_stride: optimisation steps per mapped frame and densify stride.
     tau_m, f_O, tau_d: match threshold (inliers), NVSM trigger period (viewpoints), merge
     distance (m). n_views, view_radius (m), view_elevations_deg, inpaint_tau: the NVSM.
+    nvsm_map: "local" renders the NVSM views from a full-resolution map of the object's region
+    built from its stored observations (:mod:`splatsearch.search.local_map`); "global" renders
+    the online house map. local_map: the settings of those maps.
+    inspect (off by default: no gain measured yet): walk up to unverified goal-class objects
+    (within ``inspect_range`` m geodesic) until ``inspect_distance`` m from their extent, face them, and run their NVSM with that close view
+    (at most ``inspect_steps`` steps each). Objects first seen across a room fill a few dozen
+    pixels, too few for feature matching however the views are rendered; not used by gaussnav,
+    which identifies only after exploring.
     alpha, beta, delta: eq 19 weights. stop_margin: the agent stops this close (m) to a matched
     object's extent (Habitat success: within 1 m of the object's navigable viewpoints).
     """
@@ -68,6 +82,12 @@ class AgentConfig:
     view_radius: float = 1.5
     view_elevations_deg: tuple = (20.0, 45.0)
     inpaint_tau: float = 0.5
+    nvsm_map: str = "local"
+    local_map: LocalMapConfig = field(default_factory=LocalMapConfig)
+    inspect: bool = False
+    inspect_distance: float = 1.0
+    inspect_range: float = 6.0
+    inspect_steps: int = 40
     alpha: float = 1.0
     beta: float = 1.0
     delta: float = 0.5
@@ -78,6 +98,8 @@ class AgentConfig:
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        if self.nvsm_map not in ("local", "global"):
+            raise ValueError(f"nvsm_map must be 'local' or 'global', got {self.nvsm_map!r}")
         if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
             raise ValueError("need map_every >= 1, 0 < map_scale <= 1 and n_views >= 1")
 
@@ -148,6 +170,10 @@ class SplatSearchAgent:
         self._nvsm = NVSMConfig(radius=cfg.view_radius, n_views=cfg.n_views,
                                 elevations_deg=tuple(cfg.view_elevations_deg), alpha_tau=cfg.inpaint_tau,
                                 tau_m=cfg.tau_m, inpaint=cfg.variant != "no_inpaint")
+        # a local map holds only the object's region: what lies outside it is background to fill
+        # flat, not holes to inpaint
+        self._nvsm_local = replace(self._nvsm, crop=True, crop_margin=0.0, floor_z=None)
+        self.observations = ObservationStore(cfg.local_map.max_frames, cfg.local_map.min_separation)
         self.frame_index = 0
         self.nvsm_runs = 0
         self.last_views: NovelViews | None = None
@@ -156,6 +182,11 @@ class SplatSearchAgent:
         self.path_xy: np.ndarray = np.zeros((0, 2))
         self._explored = False
         self._given_up: set[int] = set()
+        self._inspected: set[int] = set()
+        self._inspecting: int | None = None
+        self._inspect_start = 0
+        self._last_obs = None
+        self._last_frame = None
 
     # -- one step -------------------------------------------------------------------------------
     def act(self, rgb: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, pose, frame=None) -> StepInfo:
@@ -167,6 +198,7 @@ class SplatSearchAgent:
         t = {}
         t0 = time.perf_counter()
         pose = np.asarray(pose, np.float64)
+        self._last_obs, self._last_frame = (rgb, depth, viewmat), frame
         self.explorer.observe(depth, viewmat, self.K, pose, rgb)
         t["nav"] = time.perf_counter() - t0
         if self.frame_index % self.cfg.map_every == 0:
@@ -176,7 +208,7 @@ class SplatSearchAgent:
             self.mapper.update(small_rgb, small_d, viewmat)
             t["map"] = time.perf_counter() - t1
             t1 = time.perf_counter()
-            self._identify(rgb, viewmat, pose, frame)
+            self._identify(rgb, depth, viewmat, pose, frame)
             t["identify"] = time.perf_counter() - t1
         self.frame_index += 1
         t1 = time.perf_counter()
@@ -187,7 +219,7 @@ class SplatSearchAgent:
         return StepInfo(action, status, len(fr), len(self.db), best, self.nvsm_runs, t)
 
     # -- SOIM + NVSM + FEM ----------------------------------------------------------------------
-    def _identify(self, rgb, viewmat, pose, frame) -> None:
+    def _identify(self, rgb, depth, viewmat, pose, frame) -> None:
         dets = [d for d in self.detector.detect(rgb, frame) if d.label == self.goal_class]
         if not dets:
             return
@@ -201,6 +233,8 @@ class SplatSearchAgent:
             if lifted is None:
                 continue
             res = self.db.add_lifted(d.label, lifted, viewmat)
+            if res.new_viewpoint and self.cfg.nvsm_map == "local":
+                self.observations.add(res.entry_id, rgb, depth, viewmat)
             if self.cfg.variant == "no_nvsm" and res.new_viewpoint:
                 # the ablation: match the raw observation (the detection's neighbourhood) instead
                 crop = _crop_around(rgb, d.mask)
@@ -215,10 +249,17 @@ class SplatSearchAgent:
     def _run_nvsm(self, eid: int) -> None:
         cfg = self.cfg
         e = self.db[eid]
-        # the whole map is rendered, not a crop around the object: the goal image shows the
-        # object in its surroundings, and those surroundings carry many of the matches
-        score = verify_object(self.goal, self.mapper.map, e.centroid, self.K, self.W, self.H,
-                              matcher=self.matcher, inpainter=self.inpainter, config=self._nvsm)
+        obs = self.observations[eid]
+        if cfg.nvsm_map == "local" and obs and e.bbox_min is not None:
+            lo, hi = region_box(e.bbox_min, e.bbox_max, cfg.local_map.margin)
+            gmap = build_local_map(obs, self.K, self.W, self.H, lo, hi, cfg.local_map, seed=cfg.seed)
+            score = verify_object(self.goal, gmap, e.centroid, self.K, self.W, self.H, matcher=self.matcher,
+                                  inpainter=self.inpainter, config=self._nvsm_local, bbox=(lo, hi))
+        else:
+            # the whole map is rendered, not a crop around the object: the goal image shows the
+            # object in its surroundings, and those surroundings carry many of the matches
+            score = verify_object(self.goal, self.mapper.map, e.centroid, self.K, self.W, self.H,
+                                  matcher=self.matcher, inpainter=self.inpainter, config=self._nvsm)
         self.db.record_match(eid, float(score.e_max), score.i_star, cfg.tau_m, score.viewmats[score.i_star])
         self.nvsm_runs += 1
         self.last_views = NovelViews(eid, score.viewmats, score.rendered, score.images, score.counts, score.i_star)
@@ -260,7 +301,67 @@ class SplatSearchAgent:
             return plan.action, "to_goal"
         if after_exploring:
             return "stop", "explored"
+        inspect = self._inspect(pose)
+        if inspect is not None:
+            return inspect
         return self._explore(pose, "exploring")
+
+    def _inspect(self, pose) -> tuple[str, str] | None:
+        """Walk to the nearest unverified goal-class object, face it, verify it with that view."""
+        cfg = self.cfg
+        if not cfg.inspect or cfg.variant == "gaussnav":
+            return None
+        planner = self.explorer.planner()
+        if self._inspecting is None:
+            todo = [e for e in self.db if not (e.id in self._inspected or e.id in self._given_up or e.matched)]
+            if not todo:
+                return None
+            D = planner.distance_from(pose[:2])  # one FMM for all candidates
+            cands = []
+            for e in todo:
+                rs, cs, inside = planner.spec.cells_within(e.centroid[:2], e.extent_radius + cfg.inspect_distance)
+                d = D[rs, cs][inside]
+                d = float(d.min()) if d.size else np.inf
+                if d <= cfg.inspect_range:
+                    cands.append((d, e.id))
+            if not cands:
+                return None
+            self._inspecting, self._inspect_start = min(cands)[1], self.frame_index
+        e = self.db[self._inspecting]
+        plan = planner.plan(pose, e.centroid[:2], e.extent_radius + cfg.inspect_distance)
+        timed_out = self.frame_index - self._inspect_start > cfg.inspect_steps
+        if plan.status in ("unreachable", "blocked") or timed_out:
+            self._inspected.add(e.id)
+            self._inspecting = None
+            return None
+        self.target_entry = e.id
+        if plan.status not in ("reached", "closest"):
+            try:
+                self.path_xy = planner.path(pose[:2], e.centroid[:2], e.extent_radius + cfg.inspect_distance)
+            except Exception:  # noqa: BLE001 - the path is for display only
+                self.path_xy = np.zeros((0, 2))
+            return plan.action, "inspecting"
+        # there: turn until the object is ahead, then verify it with this close view
+        to = e.centroid[:2] - pose[:2]
+        err = (np.arctan2(to[1], to[0]) - pose[2] + np.pi) % (2 * np.pi) - np.pi
+        if abs(err) > np.radians(20) and self.frame_index - self._inspect_start <= cfg.inspect_steps:
+            return ("turn_left" if err > 0 else "turn_right"), "inspecting"
+        self._inspected.add(e.id)
+        self._inspecting = None
+        if self._last_obs is not None and cfg.variant != "no_nvsm":
+            rgb, depth, viewmat = self._last_obs
+            if cfg.nvsm_map == "local":
+                self.observations.add(e.id, rgb, depth, viewmat)
+            self._run_nvsm(e.id)
+        elif self._last_obs is not None:
+            dets = [d for d in self.detector.detect(self._last_obs[0], self._last_frame) if d.label == self.goal_class]
+            for d in dets:
+                n = self.matcher.count(self.goal, _crop_around(self._last_obs[0], d.mask))
+                if n > max(e.e_max, 0):
+                    self.db.record_match(e.id, float(n), 0, cfg.tau_m)
+        if e.matched:
+            return self._decide(pose)
+        return None
 
     def _explore(self, pose, label: str) -> tuple[str, str]:
         cents, scores = self.db.scores()

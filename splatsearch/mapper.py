@@ -32,7 +32,12 @@ from splatsearch.rasterization import rasterize
 
 @dataclass
 class MapperConfig:
-    """Mapper settings; defaults follow SplaTAM where the issue names them."""
+    """Mapper settings; defaults follow SplaTAM where the issue names them.
+
+    ``submap``: optimise only the Gaussians the window's frames can see (their means inside a
+    view grown by ``submap_margin`` of the image size on each side), so a step costs what the
+    visible part of the map costs, not the whole house.
+    """
 
     iters: int = 15
     window: int = 8
@@ -52,6 +57,8 @@ class MapperConfig:
     isotropic: bool = False
     initial_capacity: int = 16384
     seed: int = 0
+    submap: bool = True
+    submap_margin: float = 0.5
 
     def validate(self) -> None:
         if self.window_select not in ("overlap", "recent"):
@@ -99,32 +106,12 @@ class Mapper:
             raise ValueError(f"K must be (3, 3), got {self.K.shape}")
         self.W, self.H = int(width), int(height)
         self.map = empty_map(self.cfg.initial_capacity, self.cfg.isotropic)
-        self.tx = optax.multi_transform({k: optax.adam(v) for k, v in self.cfg.lr.items()},
-                                        {k: k for k in self.cfg.lr})
+        self.tx, self._step = _optimiser_and_step(self.cfg, self.K, self.W, self.H)
         self.opt_state = self.tx.init(self.map.params())
         self.keyframes: list[Frame] = []
         self.n_frames = 0
         self.rng = np.random.default_rng(self.cfg.seed)
-        self._step = self._make_step()
         self.last_loss = float("nan")
-
-    # -- the jitted optimisation step -----------------------------------------------------------
-    def _make_step(self):
-        cfg, tx, K, W, H = self.cfg, self.tx, jnp.asarray(self.K), self.W, self.H
-        iso = cfg.isotropic
-
-        def loss_fn(params, active, rgb, stats, depth, viewmat):
-            out = rasterize(*render_args(params, active, iso), viewmat, K, W, H, render_mode="RGB+D", validate=False)
-            return mapping_loss(out.image, out.depth, rgb, depth, lambda_p=cfg.lambda_p, w_l1=cfg.w_l1,
-                                lambda_g=cfg.lambda_g, rgb_stats=stats)
-
-        @jax.jit
-        def step(params, active, opt_state, rgb, stats, depth, viewmat):
-            loss, grads = jax.value_and_grad(loss_fn)(params, active, rgb, stats, depth, viewmat)
-            updates, opt_state = tx.update(grads, opt_state, params)
-            return optax.apply_updates(params, updates), opt_state, loss
-
-        return step
 
     def _device_frame(self, f: Frame):
         """Device arrays of a frame, with its SSIM target statistics (computed once per frame)."""
@@ -172,20 +159,15 @@ class Mapper:
             self.keyframes.append(frame)
         self.n_frames += 1
         # 3. optimise
-        params, active = self.map.params(), self.map.active
-        loss = jnp.nan
         dev = [self._device_frame(f) for f in window]
         # A new frame shows regions that no keyframe constrains yet; a uniform pick over the window
         # would give it ~iters/window steps, so a fixed share of the steps goes to it.
         n_cur = int(round(self.cfg.current_frac * self.cfg.iters))
         picks = [len(dev) - 1] * n_cur + [int(i) for i in self.rng.integers(0, len(dev), self.cfg.iters - n_cur)]
         self.rng.shuffle(picks)
-        for i in picks:
-            r, s, d, v = dev[i]
-            params, self.opt_state, loss = self._step(params, active, self.opt_state, r, s, d, v)
-        self.map = self.map.with_params(params)
-        self.last_loss = float(loss)
+        self._optimise(dev, picks, [f.viewmat for f in window])
         # 4. prune
+        params, active = self.map.params(), self.map.active
         opac = np.asarray(jax.nn.sigmoid(params["opacity_logits"]))
         big = np.exp(np.asarray(params["log_scales"]).max(1)) > self.cfg.prune_scale
         active_np = np.asarray(active)
@@ -195,6 +177,67 @@ class Mapper:
             self.map, self.opt_state = compact(self.map, self.opt_state, keep)
         return {"added": int(new["means"].shape[0]), "pruned": pruned, "n_gaussians": self.map.n_active,
                 "loss": self.last_loss}
+
+    def refine(self, iters: int) -> float:
+        """Run ``iters`` more Adam steps on keyframes drawn uniformly (no densify or prune), e.g.
+        to finish a map once all its frames are in. Returns the last loss."""
+        if iters < 0:
+            raise ValueError(f"iters must be >= 0, got {iters}")
+        if not self.keyframes or iters == 0:
+            return self.last_loss
+        dev = [self._device_frame(f) for f in self.keyframes]
+        self._optimise(dev, [int(i) for i in self.rng.integers(0, len(dev), iters)],
+                       [f.viewmat for f in self.keyframes])
+        return self.last_loss
+
+    def _optimise(self, dev: list, picks: list[int], viewmats: list) -> None:
+        """Adam steps on the frames ``dev[i] for i in picks``.
+
+        With ``submap`` the steps run on the Gaussians that the frames can see (means inside
+        one of the views, grown by ``submap_margin`` of the image), gathered into a
+        power-of-two capacity. The projection, sort and Adam costs then follow the visible
+        part of the map rather than the whole house; Gaussians that no frame sees get no
+        gradient anyway, and they no longer drift on stale Adam momentum.
+        """
+        if not picks:
+            return
+        loss = jnp.nan
+        rows = self._visible_rows(viewmats) if self.cfg.submap else None
+        if rows is None:
+            params, active, opt_state = self.map.params(), self.map.active, self.opt_state
+        else:
+            params, active, opt_state, cap = _gather_rows(self.map, self.opt_state, rows)
+        for i in picks:
+            r, s, d, v = dev[i]
+            params, opt_state, loss = self._step(params, active, opt_state, r, s, d, v)
+        if rows is None:
+            self.map, self.opt_state = self.map.with_params(params), opt_state
+        else:
+            self.map, self.opt_state = _scatter_rows(self.map, self.opt_state, rows, params, opt_state, cap)
+        self.last_loss = float(loss)
+
+    def _visible_rows(self, viewmats: list) -> np.ndarray | None:
+        """Rows of active Gaussians whose means fall in one of the views (None: use them all)."""
+        n = self.map.n_active  # active Gaussians are compact at the front
+        if n == 0:
+            return None
+        means = np.asarray(self.map.means[:n])
+        vis = np.zeros(n, bool)
+        m = self.cfg.submap_margin
+        K = self.K
+        for vm in viewmats:
+            vm = np.asarray(vm, np.float32)
+            pc = means @ vm[:3, :3].T + vm[:3, 3]
+            z = pc[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = K[0, 0] * pc[:, 0] / z + K[0, 2]
+                v = K[1, 1] * pc[:, 1] / z + K[1, 2]
+            vis |= (z > 0.01) & (u > -m * self.W) & (u < (1 + m) * self.W) & (v > -m * self.H) & (v < (1 + m) * self.H)
+        rows = np.nonzero(vis)[0]
+        # a submap nearly as big as the map saves nothing and costs the gather and scatter
+        if len(rows) == 0 or _bucket(len(rows)) >= self.map.capacity:
+            return None
+        return rows
 
     def _select_window(self, frame: Frame) -> list[Frame]:
         """Up to ``window - 1`` keyframes to optimise with ``frame``.
@@ -232,6 +275,74 @@ class Mapper:
             dl.append(float(l1(dep, np.asarray(f.depth)[..., None], valid)))
         return {"psnr": float(np.mean(ps)), "psnr_valid": float(np.mean(pv)), "ssim": float(np.mean(ss)),
                 "depth_l1": float(np.mean(dl)), "n": len(ps)}
+
+
+def _bucket(n: int) -> int:
+    """Power-of-two capacity (at least 1024) for ``n`` rows, so the step compiles a few times."""
+    return max(1024, 1 << int(np.ceil(np.log2(max(n, 1)))))
+
+
+def _gather_rows(gmap: GaussianMap, opt_state, rows: np.ndarray):
+    """(params, active, opt_state, cap) of the Gaussians ``rows``, padded to a bucket capacity."""
+    cap_full, n, cap = gmap.capacity, len(rows), _bucket(len(rows))
+    idx = np.zeros(cap, np.int64)
+    idx[:n] = rows
+    active = np.zeros(cap, bool)
+    active[:n] = True
+
+    def take(x):
+        x = np.asarray(x)
+        return jnp.asarray(x[idx]) if x.ndim >= 1 and x.shape[0] == cap_full else x
+
+    params = {k: take(v) for k, v in gmap.params().items()}
+    return params, jnp.asarray(active), jax.tree_util.tree_map(take, opt_state), cap
+
+
+def _scatter_rows(gmap: GaussianMap, opt_state, rows: np.ndarray, sub_params: dict, sub_state, cap: int):
+    """Write the optimised rows back into the full map and optimiser state."""
+    cap_full, n = gmap.capacity, len(rows)
+
+    def put(full, sub):
+        full = np.asarray(full)
+        if full.ndim >= 1 and full.shape[0] == cap_full:
+            out = full.copy()
+            out[rows] = np.asarray(sub)[:n]
+            return jnp.asarray(out)
+        return sub  # per-optimiser scalars such as Adam's step count
+
+    params = {k: put(v, sub_params[k]) for k, v in gmap.params().items()}
+    return gmap.with_params(params), jax.tree_util.tree_map(put, opt_state, sub_state)
+
+
+# Mappers with the same camera and loss settings share one optimiser and one jitted step, so
+# short-lived mappers (the search's object-local maps) do not compile again each time.
+_STEPS: dict = {}
+
+
+def _optimiser_and_step(cfg: MapperConfig, K: np.ndarray, W: int, H: int):
+    key = (tuple(sorted(cfg.lr.items())), cfg.lambda_p, cfg.w_l1, cfg.lambda_g, cfg.isotropic,
+           np.asarray(K, np.float32).tobytes(), W, H)
+    if key in _STEPS:
+        return _STEPS[key]
+    tx = optax.multi_transform({k: optax.adam(v) for k, v in cfg.lr.items()}, {k: k for k in cfg.lr})
+    Kj, iso = jnp.asarray(K, jnp.float32), cfg.isotropic
+    lambda_p, w_l1, lambda_g = cfg.lambda_p, cfg.w_l1, cfg.lambda_g
+
+    def loss_fn(params, active, rgb, stats, depth, viewmat):
+        out = rasterize(*render_args(params, active, iso), viewmat, Kj, W, H, render_mode="RGB+D", validate=False)
+        return mapping_loss(out.image, out.depth, rgb, depth, lambda_p=lambda_p, w_l1=w_l1, lambda_g=lambda_g,
+                            rgb_stats=stats)
+
+    @jax.jit
+    def step(params, active, opt_state, rgb, stats, depth, viewmat):
+        loss, grads = jax.value_and_grad(loss_fn)(params, active, rgb, stats, depth, viewmat)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    if len(_STEPS) > 16:  # many cameras in one process: keep the cache bounded
+        _STEPS.pop(next(iter(_STEPS)))
+    _STEPS[key] = (tx, step)
+    return tx, step
 
 
 def _backproject(depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, step: int = 8) -> np.ndarray:

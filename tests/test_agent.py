@@ -23,6 +23,8 @@ def test_config_validation():
         AgentConfig(variant="oracle")
     with pytest.raises(ValueError):
         AgentConfig(map_every=0)
+    with pytest.raises(ValueError, match="nvsm_map"):
+        AgentConfig(nvsm_map="house")
     assert "splatsearch" in VARIANTS and "gaussnav" in VARIANTS
 
 
