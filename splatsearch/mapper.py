@@ -221,7 +221,7 @@ class Mapper:
         n = self.map.n_active  # active Gaussians are compact at the front
         if n == 0:
             return None
-        means = np.asarray(self.map.means[:n])
+        means = np.asarray(self.map.means)[:n]  # slicing the jax array would compile per n
         vis = np.zeros(n, bool)
         m = self.cfg.submap_margin
         K = self.K
