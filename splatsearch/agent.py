@@ -60,7 +60,8 @@ class AgentConfig:
     distance (m). n_views, view_radius (m), view_elevations_deg, inpaint_tau: the NVSM.
     nvsm_map: "local" renders the NVSM views from a full-resolution map of the object's region
     built from its stored observations (:mod:`splatsearch.search.local_map`); "global" renders
-    the online house map. local_map: the settings of those maps.
+    the online house map. local_map: the settings of those maps. nvsm_max_runs: NVSM runs per
+    object at most (each local map costs a few seconds on a CPU; later runs add little).
     inspect (off by default: no gain measured yet): walk up to unverified goal-class objects
     (within ``inspect_range`` m geodesic) until ``inspect_distance`` m from their extent, face them, and run their NVSM with that close view
     (at most ``inspect_steps`` steps each). Objects first seen across a room fill a few dozen
@@ -83,6 +84,7 @@ class AgentConfig:
     view_elevations_deg: tuple = (20.0, 45.0)
     inpaint_tau: float = 0.5
     nvsm_map: str = "local"
+    nvsm_max_runs: int = 3
     local_map: LocalMapConfig = field(default_factory=LocalMapConfig)
     inspect: bool = False
     inspect_distance: float = 1.0
@@ -244,7 +246,8 @@ class SplatSearchAgent:
             self.db.pop_pending()  # gaussnav identifies after exploring; no_nvsm matched above
             return
         for eid in self.db.pop_pending():
-            self._run_nvsm(eid)
+            if self.db[eid].n_nvsm < self.cfg.nvsm_max_runs:
+                self._run_nvsm(eid)
 
     def _run_nvsm(self, eid: int) -> None:
         cfg = self.cfg

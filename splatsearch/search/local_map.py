@@ -26,8 +26,10 @@ class LocalMapConfig:
     """Settings of the object-local maps.
 
     Attributes:
-        margin: metres of surroundings kept around the object's extent (the goal image shows the
-            object in its surroundings, which carry many of the matches).
+        margin: metres of surroundings kept around the object's extent. The goal image shows the
+            object in its surroundings, which carry many of the matches: with 4 robot views of
+            each object (houses 0-1, val-hard goals) the goal instance reached >= 5 inliers in
+            37% of cases with 3 m against 21% with 1 m, other instances in 3% and 6%.
         max_frames: observations kept per object (the most redundant viewpoint is dropped).
         iters_per_frame: Adam steps when each observation is added; refine_iters: steps over all
             of them at the end. stride: densify stride in pixels.
@@ -36,7 +38,7 @@ class LocalMapConfig:
             with a heading within 20 degrees replaces it instead of adding a viewpoint.
     """
 
-    margin: float = 1.0
+    margin: float = 3.0
     max_frames: int = 5
     iters_per_frame: int = 8
     refine_iters: int = 24
