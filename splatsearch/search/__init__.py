@@ -36,7 +36,7 @@ from .matching import (
     ransac_inliers,
 )
 from .novel_views import crop_box_for, hemisphere_viewpoints, render_novel_views
-from .object_search import NVSMConfig, ObjectScore, ObjectSearch, verify_object
+from .object_search import NVSMConfig, NVSMResult, ObjectSearch, verify_object
 from .objects import (
     AddResult,
     LiftedObject,
@@ -51,7 +51,7 @@ from .objects import (
 
 __all__ = [
     "COCO_TO_GOAL", "DEFAULT_TAU_M", "AddResult", "BestView", "Detection", "Detector", "DiffusionInpainter",
-    "Inpainter", "LiftedObject", "LoFTRMatcher", "Matcher", "NVSMConfig", "ObjectDB", "ObjectEntry", "ObjectScore",
+    "Inpainter", "LiftedObject", "LoFTRMatcher", "Matcher", "NVSMConfig", "ObjectDB", "ObjectEntry", "NVSMResult",
     "ObjectSearch", "OpenCVInpainter", "SIFTMatcher", "SimDetector", "UltralyticsDetector", "backproject_mask",
     "best_view", "crop_box_for", "erode_mask", "hemisphere_viewpoints", "holes_from_alpha", "lift_mask_depth",
     "lift_mask_ids", "map_top_ids", "ransac_inliers", "render_novel_views", "split_holes", "verify_object",

@@ -28,7 +28,7 @@ from .objects import (
 )
 
 
-class ObjectScore(NamedTuple):
+class NVSMResult(NamedTuple):
     """Result of :func:`verify_object`.
 
     Attributes:
@@ -82,7 +82,7 @@ class NVSMConfig:
 
 def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.ndarray, width: int, height: int, *,
                   matcher: Matcher | None = None, inpainter: Inpainter | None = None,
-                  config: NVSMConfig | None = None, bbox: tuple | None = None) -> ObjectScore:
+                  config: NVSMConfig | None = None, bbox: tuple | None = None) -> NVSMResult:
     """Render the NVSM views of one object, complete them and match them to the goal image.
 
     Args:
@@ -111,7 +111,7 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
         rgb[outside] = cfg.crop_fill
     images = inpainter.inpaint(rgb, holes) if cfg.inpaint else rgb
     bv = best_view(goal, images, matcher)
-    return ObjectScore(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes, rgb)
+    return NVSMResult(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes, rgb)
 
 
 class ObjectSearch:
@@ -179,7 +179,7 @@ class ObjectSearch:
                 out.append((d, self.db.add_lifted(d.label, lifted, viewmat)))
         return out
 
-    def verify(self, entry_id: int, goal: np.ndarray, gmap: Any) -> ObjectScore:
+    def verify(self, entry_id: int, goal: np.ndarray, gmap: Any) -> NVSMResult:
         """Run :func:`verify_object` for one entry now and record the result in the DB."""
         e = self.db[entry_id]
         bbox = None if e.bbox_min is None else (e.bbox_min, e.bbox_max)
@@ -188,6 +188,6 @@ class ObjectSearch:
         self.db.record_match(entry_id, score.e_max, score.i_star, self.nvsm.tau_m, score.viewmats[score.i_star])
         return score
 
-    def verify_pending(self, goal: np.ndarray, gmap: Any) -> dict[int, ObjectScore]:
+    def verify_pending(self, goal: np.ndarray, gmap: Any) -> dict[int, NVSMResult]:
         """Verify every entry whose NVSM is due (see :meth:`ObjectDB.pop_pending`)."""
         return {i: self.verify(i, goal, gmap) for i in self.db.pop_pending()}
