@@ -10,6 +10,7 @@ Commands:
     eval          SR / SPL of SplatSearch and its ablations over many episodes.
     view          open a saved map (.ply or .npz) in the viser viewer.
     export        convert a map between .npz and .ply.
+    social        social navigation: DWA and CoNVOI+DWA on the pedestrian scenarios (Tables I-II).
 """
 
 from __future__ import annotations
@@ -284,6 +285,10 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("src")
     x.add_argument("dst")
     x.set_defaults(func=_cmd_export)
+
+    from splatsearch.social.cli import register as register_social
+
+    register_social(sub)
     return p
 
 

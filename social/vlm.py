@@ -1,0 +1,417 @@
+"""The large-VLM interface of CoNVOI (eq 4): ``select_labels(image, prompt, valid) -> VLMResult``.
+
+Implementations:
+
+* :class:`OpenAICompatibleVLM`: any OpenAI-compatible ``/chat/completions`` endpoint (GPT-4o,
+  Gemini through its OpenAI endpoint, vLLM, llama.cpp server, ...) over stdlib ``urllib``:
+  timeouts, retries with backoff on network errors, 429 and 5xx, and defensive parsing of the
+  reply. It never raises for a failed query: the result has ``ok=False`` and the planner falls
+  back to plain DWA.
+* :class:`RuleBasedVLM`: an offline stand-in that reads the behaviour phrase in the prompt and
+  picks markers from the scene geometry (see its doc).
+* :class:`ReplayVLM`: record the answers of another VLM to a JSON file (atomic writes), or replay
+  them later without it, keyed by a hash of (image, prompt, valid labels).
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import os
+import re
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class VLMResult:
+    """ok: a usable answer; labels: the chosen marker numbers in path order (M_ref); raw: the
+    model's text; error: why not ok; latency_s: wall-clock seconds of the query; source: which
+    implementation answered."""
+
+    ok: bool
+    labels: tuple[int, ...] = ()
+    raw: str = ""
+    error: str | None = None
+    latency_s: float = 0.0
+    source: str = ""
+
+
+@runtime_checkable
+class VLM(Protocol):
+    def select_labels(self, image: np.ndarray, prompt: str, valid: Sequence[int], scene: Any = None) -> VLMResult: ...
+
+
+_INT = re.compile(r"(?<![\d.])\d{1,4}(?![\d.])")
+
+
+def parse_labels(text: str, valid: Sequence[int]) -> tuple[int, ...]:
+    """The marker numbers in a model reply, in order, without repeats, keeping only ``valid`` ones.
+
+    Accepts a JSON list (also inside a ```json fence or an object such as {"numbers": [...]}) or
+    free text ("Numbers: 3, 7 and 12"); a JSON list found anywhere wins over loose numbers.
+    """
+    if not isinstance(text, str):
+        return ()
+    valid_set = {int(v) for v in valid}
+    nums: list[int] = []
+    for m in re.finditer(r"\[[^\[\]]*\]", text):
+        try:
+            arr = json.loads(m.group(0))
+        except (ValueError, TypeError):
+            continue
+        if isinstance(arr, list) and arr and all(isinstance(x, (int, float, str)) for x in arr):
+            cand = []
+            for x in arr:
+                try:
+                    cand.append(int(float(x)))
+                except (ValueError, TypeError):
+                    cand = []
+                    break
+            if cand:
+                nums = cand
+                break
+    if not nums:
+        nums = [int(m.group(0)) for m in _INT.finditer(text)]
+    out: list[int] = []
+    for n in nums:
+        if n in valid_set and n not in out:
+            out.append(n)
+    return tuple(out)
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an RGB image (uint8, or float in [0, 1])."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        img = (np.clip(img, 0, 1) * 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., :3][..., ::-1]))
+    if not ok:
+        raise ValueError("could not encode the image as PNG")
+    return buf.tobytes()
+
+
+class OpenAICompatibleVLM:
+    """Client of an OpenAI-compatible chat-completions endpoint.
+
+    Args:
+        base_url: e.g. "https://api.openai.com/v1" or "http://127.0.0.1:8000/v1".
+        model: the model name the server expects.
+        api_key: the key, or None to read the environment variable ``api_key_env``.
+        timeout: seconds per HTTP attempt; retries: extra attempts after the first;
+        backoff: seconds before the first retry, doubled each time.
+        max_tokens, temperature: generation settings.
+    """
+
+    def __init__(self, base_url: str, model: str, *, api_key: str | None = None, api_key_env: str = "OPENAI_API_KEY",
+                 timeout: float = 20.0, retries: int = 2, backoff: float = 0.5, max_tokens: int = 200,
+                 temperature: float = 0.0):
+        if not base_url.startswith(("http://", "https://")):
+            raise ValueError(f"base_url must start with http:// or https://, got {base_url!r}")
+        if timeout <= 0 or retries < 0 or backoff < 0:
+            raise ValueError("need timeout > 0, retries >= 0 and backoff >= 0")
+        self.url = base_url.rstrip("/") + "/chat/completions"
+        self.model = model
+        self.api_key = api_key if api_key is not None else os.environ.get(api_key_env)
+        self.timeout, self.retries, self.backoff = float(timeout), int(retries), float(backoff)
+        self.max_tokens, self.temperature = int(max_tokens), float(temperature)
+
+    def request_body(self, image: np.ndarray, prompt: str, valid: Sequence[int]) -> dict:
+        """The JSON body sent for one query."""
+        b64 = base64.b64encode(encode_png(image)).decode("ascii")
+        text = (f"{prompt} Valid numbers: {', '.join(str(int(v)) for v in valid)}. "
+                "Answer with a JSON list of numbers in the order the robot should visit them, e.g. [3, 8, 12].")
+        return {"model": self.model, "temperature": self.temperature, "max_tokens": self.max_tokens,
+                "messages": [{"role": "user", "content": [
+                    {"type": "text", "text": text},
+                    {"type": "image_url", "image_url": {"url": f"data:image/png;base64,{b64}"}}]}]}
+
+    def _post(self, body: bytes) -> tuple[int, str]:
+        headers = {"Content-Type": "application/json"}
+        if self.api_key:
+            headers["Authorization"] = f"Bearer {self.api_key}"
+        req = urllib.request.Request(self.url, data=body, headers=headers, method="POST")
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+                return resp.status, resp.read().decode("utf-8", "replace")
+        except urllib.error.HTTPError as e:
+            try:
+                detail = e.read().decode("utf-8", "replace")[:500]
+            except Exception:  # noqa: BLE001 - the error body is only decoration
+                detail = ""
+            return e.code, detail
+
+    def select_labels(self, image: np.ndarray, prompt: str, valid: Sequence[int], scene: Any = None) -> VLMResult:
+        """Query the endpoint; never raises for network or reply problems (``ok=False``)."""
+        t0 = time.perf_counter()
+        valid = [int(v) for v in valid]
+        if not valid:
+            return VLMResult(False, error="no valid markers to choose from", source="openai")
+        body = json.dumps(self.request_body(image, prompt, valid)).encode("utf-8")
+        err = "no attempt made"
+        for attempt in range(self.retries + 1):
+            if attempt:
+                time.sleep(self.backoff * 2 ** (attempt - 1))
+            try:
+                status, text = self._post(body)
+            except (urllib.error.URLError, TimeoutError, OSError, ValueError) as e:
+                err = f"request failed: {type(e).__name__}: {getattr(e, 'reason', e)}"
+                continue
+            if status == 429 or status >= 500:
+                err = f"HTTP {status}: {text[:200]}"
+                continue
+            if status != 200:
+                return VLMResult(False, raw=text[:2000], error=f"HTTP {status}: {text[:200]}",
+                                 latency_s=time.perf_counter() - t0, source="openai")
+            content, why = _content_of(text)
+            if content is None:
+                return VLMResult(False, raw=text[:2000], error=why, latency_s=time.perf_counter() - t0, source="openai")
+            labels = parse_labels(content, valid)
+            if not labels:
+                return VLMResult(False, raw=content[:2000], error="the reply names no valid marker",
+                                 latency_s=time.perf_counter() - t0, source="openai")
+            return VLMResult(True, labels, content[:2000], None, time.perf_counter() - t0, "openai")
+        return VLMResult(False, error=err, latency_s=time.perf_counter() - t0, source="openai")
+
+
+def _content_of(text: str) -> tuple[str | None, str]:
+    try:
+        obj = json.loads(text)
+    except ValueError:
+        return None, "the reply is not JSON"
+    try:
+        content = obj["choices"][0]["message"]["content"]
+    except (KeyError, IndexError, TypeError):
+        return None, "the reply has no choices[0].message.content"
+    if isinstance(content, list):  # some servers return content parts
+        content = " ".join(str(p.get("text", "")) if isinstance(p, dict) else str(p) for p in content)
+    if not isinstance(content, str):
+        return None, "the message content is not text"
+    return content, ""
+
+
+# ---------------------------------------------------------------------------------------------
+# rule-based
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MarkerScene:
+    """What :class:`RuleBasedVLM` sees besides the image (robot frame, metres, m/s).
+
+    markers: :class:`splatsearch.social.mmvm.Markers`; people: (k, 2); people_vel: (k, 2);
+    groups: (k,) labels (-1 alone); goal: (2,) the goal direction or point; clearance: callable
+    mapping (n, 2) points to clearance (m) to the nearest obstacle (static or person).
+    """
+
+    markers: Any
+    people: np.ndarray
+    people_vel: np.ndarray
+    groups: np.ndarray
+    goal: np.ndarray
+    clearance: Any = None
+
+
+class RuleBasedVLM:
+    """Offline stand-in for the large VLM.
+
+    It reads the behaviour phrase of the prompt: "right" prefers markers on the right,
+    "middle" prefers the most clearance, "group" forbids legs that pass between members of a group,
+    "berth"/"away" widens the distance kept from people, "behind" penalises markers in front of
+    walking people. Then, row by row from the nearest, it picks the cheapest valid marker
+    (goal direction, the preferences above, smoothness between rows, predicted distance to people at
+    the time the robot would get there at ``v_nominal``). Without a scene it cannot see anything
+    and answers ``ok=False``.
+    """
+
+    def __init__(self, v_nominal: float = 0.5, berth: float = 1.0, wide_berth: float = 1.5):
+        self.v_nominal, self.berth, self.wide_berth = float(v_nominal), float(berth), float(wide_berth)
+
+    def select_labels(self, image: np.ndarray, prompt: str, valid: Sequence[int], scene: MarkerScene | None = None) -> VLMResult:
+        t0 = time.perf_counter()
+        if scene is None:
+            return VLMResult(False, error="the rule-based VLM needs the marker scene", source="rules")
+        p = prompt.lower()
+        right = "right" in p
+        middle = "middle" in p
+        groups = "group" in p or "together" in p
+        behind = "behind" in p
+        berth = self.wide_berth if ("berth" in p or "away" in p) else self.berth
+        m = scene.markers
+        valid_set = {int(v) for v in valid}
+        keep = np.array([int(k) in valid_set for k in m.labels], bool)
+        if not keep.any():
+            return VLMResult(False, error="no valid markers", latency_s=time.perf_counter() - t0, source="rules")
+        ppl = np.asarray(scene.people, np.float64).reshape(-1, 2)
+        pv = np.asarray(scene.people_vel, np.float64).reshape(-1, 2)
+        grp = np.asarray(scene.groups).reshape(-1)
+        pairs = [(a, b) for g in set(grp.tolist()) - {-1} for a in np.flatnonzero(grp == g)
+                 for b in np.flatnonzero(grp == g) if a < b]
+        goal = np.asarray(scene.goal, np.float64)
+        # each group as a disc: its members' circle grown by a person radius and half a berth
+        discs = []
+        for g in set(grp.tolist()) - {-1}:
+            mem = ppl[grp == g]
+            c = mem.mean(0)
+            discs.append((c, float(np.linalg.norm(mem - c, axis=1).max()) + 0.25 + 0.5 * berth))
+        clear = scene.clearance(m.robot_xy) if scene.clearance is not None else np.full(len(m.labels), 1.0)
+        chosen: list[int] = []
+        prev = np.zeros(2)
+        for row in sorted(set(m.row[keep].tolist())):
+            idx = np.flatnonzero(keep & (m.row == row))
+            pts = m.robot_xy[idx]
+            ys = pts[:, 1]
+            # lateral distance (m) from the straight line to the goal at each marker
+            gdir = goal / max(np.linalg.norm(goal), 1e-6)
+            cost = 1.0 * np.abs(pts[:, 0] * gdir[1] - pts[:, 1] * gdir[0])
+            cost += 1.5 * np.abs(pts[:, 1] - prev[1])
+            if right:
+                cost += 4.0 * (ys - ys.min())
+            if middle:
+                cost += 3.0 * (1.0 - np.clip(clear[idx], 0, 1.0))
+            cost += 4.0 * np.clip(0.5 - clear[idx], 0, None)
+            t_arr = np.linalg.norm(pts, axis=1) / self.v_nominal
+            for q, v in zip(ppl, pv):
+                fut = q[None] + t_arr[:, None] * v[None]
+                d = np.minimum(np.linalg.norm(pts - fut, axis=1), np.linalg.norm(pts - q[None], axis=1))
+                cost += 6.0 * np.clip(berth - d, 0, None) ** 2
+                if behind and np.linalg.norm(v) > 0.2:
+                    ahead = (pts - q[None]) @ (v / np.linalg.norm(v))
+                    cost += 2.0 * ((ahead > 0) & (ahead < 3.0) & (d < 2.0))
+            if groups and pairs:
+                for k, pt in enumerate(pts):
+                    for a, b in pairs:
+                        d, _ = _seg_seg(prev, pt, ppl[a], ppl[b])
+                        if d < 0.35:
+                            cost[k] = np.inf
+                    for c, rad in discs:
+                        # through the group's space now, or heading straight through it next
+                        if _seg_point(prev, pt, c) < rad:
+                            cost[k] += 6.0
+                        if _seg_point(pt, goal, c) < rad:
+                            cost[k] += 2.0
+            if not np.isfinite(cost).any():
+                break
+            k = int(np.argmin(cost))
+            chosen.append(int(m.labels[idx[k]]))
+            prev = pts[k]
+        if not chosen:
+            return VLMResult(False, error="no acceptable marker", latency_s=time.perf_counter() - t0, source="rules")
+        raw = json.dumps(chosen)
+        return VLMResult(True, tuple(chosen), raw, None, time.perf_counter() - t0, "rules")
+
+
+def _seg_point(a, b, p) -> float:
+    ab = b - a
+    t = np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-12), 0, 1)
+    return float(np.linalg.norm(p - (a + t * ab)))
+
+
+def _seg_seg(p1, p2, q1, q2) -> tuple[float, None]:
+    """Distance between segments p1-p2 and q1-q2 (numpy, 2-D)."""
+    def cross(u, v):
+        return u[0] * v[1] - u[1] * v[0]
+
+    d1, d2 = p2 - p1, q2 - q1
+    o1, o2 = cross(d1, q1 - p1), cross(d1, q2 - p1)
+    o3, o4 = cross(d2, p1 - q1), cross(d2, p2 - q1)
+    if o1 * o2 < 0 and o3 * o4 < 0:
+        return 0.0, None
+
+    def ps(p, a, b):
+        ab = b - a
+        t = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-12), 0, 1)
+        return float(np.linalg.norm(p - (a + t * ab)))
+
+    return min(ps(p1, q1, q2), ps(p2, q1, q2), ps(q1, p1, p2), ps(q2, p1, p2)), None
+
+
+# ---------------------------------------------------------------------------------------------
+# record / replay
+# ---------------------------------------------------------------------------------------------
+
+def query_key(image: np.ndarray, prompt: str, valid: Sequence[int]) -> str:
+    """sha256 of the image bytes (uint8 RGB), its shape, the prompt and the valid labels."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        img = (np.clip(img, 0, 1) * 255).astype(np.uint8)
+    h = hashlib.sha256()
+    h.update(str(img.shape).encode())
+    h.update(np.ascontiguousarray(img).tobytes())
+    h.update(prompt.encode("utf-8"))
+    h.update(",".join(str(int(v)) for v in valid).encode())
+    return h.hexdigest()
+
+
+def atomic_write_json(path: str, obj) -> None:
+    """Write ``obj`` as JSON to ``path`` through a temporary file and ``os.replace``."""
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".vlm-", suffix=".json", dir=d)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(obj, f, indent=1, sort_keys=True)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+@dataclass
+class ReplayVLM:
+    """Record or replay VLM answers.
+
+    mode "record": ask ``inner`` and store every answer (ok or not) under its query key, writing
+    the file atomically after each new answer; "replay": answer only from the file (a miss is
+    ``ok=False``); "auto": replay when recorded, else record. The file is JSON:
+    ``{"version": 1, "entries": {key: VLMResult fields + prompt}}``.
+    """
+
+    path: str
+    inner: VLM | None = None
+    mode: str = "auto"
+    entries: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.mode not in ("record", "replay", "auto"):
+            raise ValueError(f"mode must be 'record', 'replay' or 'auto', got {self.mode!r}")
+        if self.mode == "record" and self.inner is None:
+            raise ValueError("mode 'record' needs an inner VLM to ask")
+        if os.path.exists(self.path):
+            try:
+                with open(self.path, encoding="utf-8") as f:
+                    data = json.load(f)
+            except (OSError, ValueError) as e:
+                raise ValueError(f"cannot read the VLM recording {self.path!r}: {e}") from e
+            if not isinstance(data, dict) or data.get("version") != 1 or not isinstance(data.get("entries"), dict):
+                raise ValueError(f"{self.path!r} is not a VLM recording (version 1)")
+            self.entries = dict(data["entries"])
+        elif self.mode == "replay":
+            raise FileNotFoundError(f"no VLM recording at {self.path!r}")
+
+    def select_labels(self, image: np.ndarray, prompt: str, valid: Sequence[int], scene: Any = None) -> VLMResult:
+        key = query_key(image, prompt, valid)
+        if self.mode != "record" and key in self.entries:
+            e = self.entries[key]
+            return VLMResult(bool(e["ok"]), tuple(int(x) for x in e.get("labels", ())), e.get("raw", ""),
+                             e.get("error"), float(e.get("latency_s", 0.0)), "replay")
+        if self.mode == "replay" or self.inner is None:
+            return VLMResult(False, error="query not in the recording", source="replay")
+        res = self.inner.select_labels(image, prompt, valid, scene)
+        entry = asdict(res)
+        entry["labels"] = list(res.labels)
+        entry["prompt"] = prompt
+        self.entries[key] = entry
+        atomic_write_json(self.path, {"version": 1, "entries": self.entries})
+        return res
