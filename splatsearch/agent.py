@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from splatsearch.mapper import Mapper, MapperConfig
-from splatsearch.nav.encoders import ColorTextureEncoder, ImageEncoder
+from splatsearch.nav.encoders import ColorTextureEncoder, ImageEncoder, cosine
 from splatsearch.nav.exploration import (
     ExplorationConfig,
     ExplorationPlanner,
@@ -158,7 +158,12 @@ class SplatSearchAgent:
         ecfg = ExplorationConfig(alpha=cfg.alpha, beta=0.0 if only_alpha else cfg.beta,
                                  delta=0.0 if only_alpha else cfg.delta, tau_m=cfg.tau_m)
         spec = GridSpec.centered(np.asarray(start_pose)[:2], cfg.grid_shape)
-        self.explorer = ExplorationPlanner(spec, ecfg, encoder=encoder or ColorTextureEncoder())
+        self.encoder = encoder or ColorTextureEncoder()
+        self.explorer = ExplorationPlanner(spec, ecfg, encoder=self.encoder)
+        self._goal_embedding = np.asarray(self.encoder.embed(self.goal), np.float32)
+        # per object: best embedding cosine between the goal image and a detection's crop; it
+        # only breaks ties between candidates when exploration ends with no match above tau_m
+        self.appearance: dict[int, float] = {}
         if ecfg.delta > 0:
             self.explorer.set_goal_image(self.goal)
         # mapping camera: the robot camera scaled down
@@ -235,6 +240,9 @@ class SplatSearchAgent:
             if lifted is None:
                 continue
             res = self.db.add_lifted(d.label, lifted, viewmat)
+            if res.new_viewpoint:
+                sim = cosine(self.encoder.embed(_crop_around(rgb, d.mask)), self._goal_embedding)
+                self.appearance[res.entry_id] = max(sim, self.appearance.get(res.entry_id, -1.0))
             if res.new_viewpoint and self.cfg.nvsm_map == "local":
                 self.observations.add(res.entry_id, rgb, depth, viewmat)
             if self.cfg.variant == "no_nvsm" and res.new_viewpoint:
@@ -277,11 +285,12 @@ class SplatSearchAgent:
                         self._run_nvsm(e.id)
                 matched = self.db.matched()
             if not matched:
-                # everything is explored and nothing passed tau_m: the best candidate with any
-                # match at all is still better than stopping where the robot is
-                cands = [e for e in self.db if e.e_max > 0 and e.id not in self._given_up]
+                # everything is explored and nothing passed tau_m: the goal-class object with the
+                # most matches (then the most similar appearance) is still a better bet than
+                # stopping where the robot is
+                cands = [e for e in self.db if e.id not in self._given_up]
                 if cands:
-                    best = max(cands, key=lambda e: e.e_max)
+                    best = max(cands, key=lambda e: (e.e_max, self.appearance.get(e.id, -1.0)))
                     best.matched = True
                     matched = [best]
         if matched:
