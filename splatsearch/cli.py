@@ -10,7 +10,8 @@ Commands:
     eval          SR / SPL of SplatSearch and its ablations over many episodes.
     view          open a saved map (.ply or .npz) in the viser viewer.
     export        convert a map between .npz and .ply.
-    social        social navigation: DWA and CoNVOI+DWA on the pedestrian scenarios (Tables I-II).
+    social        social navigation: DWA and CoNVOI+DWA on the pedestrian scenarios (Tables I-II);
+                  ``social train`` / ``social eval``: OLiVia-Nav.
 """
 
 from __future__ import annotations
@@ -287,8 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.set_defaults(func=_cmd_export)
 
     from splatsearch.social.cli import register as register_social
+    from splatsearch.social.olivia_cli import register_olivia
 
-    register_social(sub)
+    register_social(sub, extra=[register_olivia])
     return p
 
 

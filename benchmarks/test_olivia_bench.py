@@ -1,0 +1,70 @@
+"""OLiVia-Nav planning rate (target >= 5 Hz on 2 CPU cores, thesis 3.5.1.2).
+
+One planning cycle = sensors (egocentric render + two LiDAR sweeps + goal) + SC-CLIP image
+encoder + D_T retrieval + TPN + TSM, and one PID step. Uses the trained checkpoint at
+``$OLIVIA_CHECKPOINT`` (default ``runs/olivia/olivia.npz``) when it exists, else freshly
+initialised networks of the same size (the rate does not depend on the weights).
+
+    python -m pytest benchmarks/test_olivia_bench.py --benchmark-enable
+"""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from splatsearch.social.controller import follow_step, follower_init
+from splatsearch.social.geometry import robot_to_world
+from splatsearch.social.llu import TextDB
+from splatsearch.social.olivia import OliviaConfig, OliviaNav
+from splatsearch.social.olivia_data import observe
+from splatsearch.social.scenarios import make_scenario
+
+
+def _planner() -> OliviaNav:
+    path = os.environ.get("OLIVIA_CHECKPOINT", "runs/olivia/olivia.npz")
+    if os.path.exists(path):
+        from splatsearch.social.olivia_train import load_planner
+
+        return load_planner(path)
+    from splatsearch.social import sc_clip, tpn, tsm
+
+    cfg = OliviaConfig()
+    k = jax.random.split(jax.random.PRNGKey(0), 3)
+    params = {"clip": sc_clip.init_sc_clip(k[0], cfg.clip), "tpn": tpn.init_tpn(k[1], cfg.tpn),
+              "tsm": tsm.init_tsm(k[2], cfg.tsm)}
+    rng = np.random.default_rng(0)
+    emb = rng.normal(size=(1000, cfg.clip.embed)).astype(np.float32)
+    db = TextDB(emb / np.linalg.norm(emb, axis=1, keepdims=True), [f"c{i}" for i in range(1000)],
+                np.zeros(1000, np.int32))
+    return OliviaNav(params, db, cfg)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    scn = make_scenario("static_groups", 1000)
+    planner = _planner()
+    pose = np.asarray(scn.start, np.float32)
+    people = np.asarray(scn.peds.pos)
+    path = scn.global_path()
+
+    def cycle():
+        obs = observe(scn, pose, people, pose, people, path)
+        res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal)
+        tr = res.trajs[res.index]
+        traj = np.vstack([pose[None, :2], robot_to_world(tr[:, :2].astype(np.float64), pose.astype(np.float64))])
+        cmd, _ = follow_step(planner.cfg.follower, follower_init(), jnp.asarray(pose), jnp.asarray(traj, jnp.float32),
+                             0.1)
+        return np.asarray(cmd)
+
+    cycle()  # compile
+    return cycle
+
+
+def test_planning_cycle(benchmark, setup):
+    cmd = benchmark(setup)
+    assert cmd.shape == (2,) and np.all(np.isfinite(cmd))
+    if benchmark.stats is not None:
+        benchmark.extra_info["hz"] = 1.0 / benchmark.stats.stats.mean

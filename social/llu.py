@@ -1,0 +1,145 @@
+"""OLiVia-Nav's Lifelong Learning Updater (LLU, thesis 3.2.1.2, eq 4).
+
+During navigation the LLU stores images in a buffer of |B| images. When it is full, the images are
+captioned by the large VLM (any :class:`~splatsearch.social.olivia_data.Captioner`), and both
+encoders are fine-tuned with the symmetric image-text loss of eq 4 at temperature μ:
+
+    L = - Σ_{E_I ∈ V_I} log exp(h(E_I, E_T) / μ) / Σ_{E'_T ∈ V_T} exp(h(E_I, E'_T) / μ)
+
+(h = cosine similarity; "symmetric" adds the same term with images and texts swapped). Then the
+text database D_T (unit E_T of the long captions, plus their actions) is rebuilt with the new
+F_T; it holds the offline captions and the buffer's new ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .olivia_data import LONG_LEN, action_from_text
+from .sc_clip import SCCLIP, SCCLIPConfig, encode_texts, normalize, soft_targets
+from .tokenizer import DEFAULT_TOKENIZER, Tokenizer
+
+F32 = jnp.float32
+
+
+def llu_loss(e_img, e_text, mu: float = 0.05, symmetric: bool = True, targets=None):
+    """eq 4 averaged over the batch: e_img (B, D), e_text (B, D) (normalised here), matching rows.
+    ``targets`` (B, B) optionally spreads the positive over identical captions; ``symmetric``
+    averages the image->text and text->image terms."""
+    if mu <= 0:
+        raise ValueError(f"the temperature mu must be > 0, got {mu}")
+    a, b = normalize(e_img), normalize(e_text)
+    sim = a @ b.T / mu
+    t = jnp.eye(a.shape[0], dtype=F32) if targets is None else targets
+    l1 = -jnp.mean(jnp.sum(t * jax.nn.log_softmax(sim, 1), 1))
+    if not symmetric:
+        return l1
+    return 0.5 * (l1 - jnp.mean(jnp.sum(t.T * jax.nn.log_softmax(sim.T, 1), 1)))
+
+
+@dataclass
+class TextDB:
+    """D_T: unit text embeddings (N, D), their long captions and action indices (N,)."""
+
+    embeddings: np.ndarray
+    captions: list
+    actions: np.ndarray
+
+    def retrieve(self, e_img) -> tuple[int, np.ndarray]:
+        """Index of the caption most cosine-similar to E_I (D,), and its E_T (D,)."""
+        e = np.asarray(e_img, np.float32)
+        e = e / max(float(np.linalg.norm(e)), 1e-6)
+        i = int(np.argmax(self.embeddings @ e))
+        return i, self.embeddings[i]
+
+
+def build_text_db(params, captions: list, cfg: SCCLIPConfig = SCCLIPConfig(), tok: Tokenizer = DEFAULT_TOKENIZER,
+                  batch: int = 256) -> TextDB:
+    """D_T from long captions with the current F_T (duplicates removed)."""
+    caps = list(dict.fromkeys(captions))
+    if not caps:
+        raise ValueError("D_T needs at least one caption")
+    f = jax.jit(lambda p, i, m: encode_texts(p, i, m, cfg))
+    out = []
+    for s in range(0, len(caps), batch):
+        ids, mask = tok.encode_batch(caps[s:s + batch], min(LONG_LEN, cfg.text_len))
+        out.append(np.asarray(f(params, jnp.asarray(ids), jnp.asarray(mask))))
+    return TextDB(np.concatenate(out).astype(np.float32), caps, np.asarray([action_from_text(c) for c in caps], np.int32))
+
+
+@dataclass
+class LLUConfig:
+    """size: |B| images per update; mu: eq 4 temperature; steps: optimiser steps per update;
+    lr: AdamW learning rate; weight_decay; batch: images per step."""
+
+    size: int = 50
+    mu: float = 0.05
+    steps: int = 30
+    lr: float = 1e-4
+    weight_decay: float = 0.01
+    batch: int = 50
+
+
+@dataclass
+class LLUBuffer:
+    """The image buffer B_I (and the captions B_T once captioned)."""
+
+    size: int = 50
+    images: list = field(default_factory=list)
+    scenes: list = field(default_factory=list)
+
+    def add(self, image: np.ndarray, scene=None) -> bool:
+        """Store one image (H, W, 3) (and the privileged scene a template captioner needs);
+        returns True when the buffer is full."""
+        if len(self.images) < self.size:
+            self.images.append(np.asarray(image))
+            self.scenes.append(scene)
+        return self.full
+
+    @property
+    def full(self) -> bool:
+        return len(self.images) >= self.size
+
+    def clear(self) -> None:
+        self.images.clear()
+        self.scenes.clear()
+
+
+def llu_update(params, images: np.ndarray, captions: list, cfg: LLUConfig = LLUConfig(),
+               clip_cfg: SCCLIPConfig = SCCLIPConfig(), tok: Tokenizer = DEFAULT_TOKENIZER, seed: int = 0):
+    """One LLU iteration i -> i+1: fine-tune F_I and F_T on (images (N, H, W, 3), long captions)
+    with eq 4. Returns (new params, per-step losses)."""
+    if len(images) != len(captions) or len(images) < 2:
+        raise ValueError(f"need >= 2 images with one caption each, got {len(images)} and {len(captions)}")
+    model = SCCLIP(clip_cfg)
+    ids, mask = tok.encode_batch(list(captions), min(LONG_LEN, clip_cfg.text_len))
+    imgs = np.asarray(images)
+
+    def loss(p, im, i, m):
+        e_i = model.apply({"params": p}, im, method=SCCLIP.encode_image)
+        e_t = model.apply({"params": p}, i, m, method=SCCLIP.encode_text)
+        return llu_loss(e_i, e_t, cfg.mu, True, soft_targets(i))
+
+    opt = optax.adamw(cfg.lr, weight_decay=cfg.weight_decay)
+    state = opt.init(params)
+
+    @jax.jit
+    def step(p, s, im, i, m):
+        lv, g = jax.value_and_grad(loss)(p, im, i, m)
+        u, s = opt.update(g, s, p)
+        return optax.apply_updates(p, u), s, lv
+
+    rng = np.random.default_rng(seed)
+    n = len(imgs)
+    bs = min(cfg.batch, n)
+    losses = []
+    for _ in range(cfg.steps):
+        sel = rng.permutation(n)[:bs]
+        params, state, lv = step(params, state, jnp.asarray(imgs[sel]), jnp.asarray(ids[sel]), jnp.asarray(mask[sel]))
+        losses.append(float(lv))
+    return params, losses

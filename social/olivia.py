@@ -1,0 +1,173 @@
+"""OLiVia-Nav, the planner (thesis Fig. 1): SCM encoders -> TPN -> TSM -> NC.
+
+One planning cycle (:meth:`OliviaNav.plan`, one jitted function for the networks):
+
+1. F_I embeds the egocentric view: E_I.
+2. E_T is retrieved from the text database D_T by cosine similarity to E_I (thesis 3.2.1.1).
+3. The TPN plans K trajectories from E_I, the LiDAR sweeps and the goal (eq 1).
+4. The TSM scores them with E_T and the best one is τ* (eq 7).
+5. The NC (the social module's PID follower) tracks τ* until the next plan.
+
+:func:`run_olivia_episode` closes the loop in a scenario among the simulated people and returns
+the social module's :class:`~splatsearch.social.runner.EpisodeResult`, so that the same metrics
+apply to OLiVia-Nav, DWA, CoNVOI and the expert. The ablations switch E_I (TPN), E_L (TPN) or
+E_T (TSM) off.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import pedsim
+from .controller import FollowerConfig, follow_step, follower_init
+from .dwa import step_unicycle
+from .geometry import F32, field_lookup, robot_to_world
+from .llu import LLUBuffer, TextDB
+from .olivia_data import PREV_STEPS, caption_scene, observe, action_of
+from .runner import GOAL_TOLERANCE, EpisodeResult
+from .sc_clip import SCCLIP, SCCLIPConfig, normalize
+from .scenarios import ROBOT_RADIUS, Scenario
+from .tpn import TPN, TPNConfig
+from .tsm import TSM, TSMConfig
+
+FINAL_APPROACH = 1.0  # m from the goal: the NC's trajectory is extended to the goal itself
+VARIANTS = ("olivia", "no_image", "no_text", "no_lidar")
+VARIANT_LABELS = {"olivia": "OLiVia-Nav", "no_image": "OLiVia-Nav w/o E_I", "no_text": "OLiVia-Nav w/o E_T",
+                  "no_lidar": "OLiVia-Nav w/o E_L"}
+
+
+@dataclass(frozen=True)
+class OliviaConfig:
+    """The three networks' configurations, the NC's, and the replanning period (sim steps)."""
+
+    clip: SCCLIPConfig = SCCLIPConfig()
+    tpn: TPNConfig = TPNConfig()
+    tsm: TSMConfig = TSMConfig()
+    follower: FollowerConfig = FollowerConfig()
+    replan_every: int = 2  # 5 Hz at dt = 0.1 s (the thesis' planning rate)
+
+
+@partial(jax.jit, static_argnames=("cfg", "use_image", "use_lidar", "use_text"))
+def _plan(clip_p, tpn_p, tsm_p, db, image, points, valid, goal, cfg: OliviaConfig, use_image: bool, use_lidar: bool,
+          use_text: bool):
+    e_i = normalize(SCCLIP(cfg.clip).apply({"params": clip_p}, image[None], method=SCCLIP.encode_image))
+    j = jnp.argmax(db @ e_i[0])
+    e_t = db[j][None]
+    trajs = TPN(cfg.tpn).apply({"params": tpn_p}, e_i, points[None], valid[None], goal[None],
+                               jnp.full((1,), use_image), jnp.full((1,), use_lidar))
+    logits = TSM(cfg.tsm).apply({"params": tsm_p}, e_t, trajs, jnp.full((1,), use_text))
+    return trajs[0], logits[0], j, e_i[0]
+
+
+@dataclass
+class PlanResult:
+    """trajs: (K, horizon, 3) robot frame; logits: (K,); index: k selected; caption: the
+    retrieved long caption; action: its action; e_img: (D,) E_I."""
+
+    trajs: np.ndarray
+    logits: np.ndarray
+    index: int
+    caption: str
+    action: int
+    e_img: np.ndarray
+
+
+class OliviaNav:
+    """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees; db: D_T; variant: one of
+    :data:`VARIANTS`."""
+
+    def __init__(self, params: dict, db: TextDB, cfg: OliviaConfig = OliviaConfig(), variant: str = "olivia"):
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown variant {variant!r}; choose from {VARIANTS}")
+        for k in ("clip", "tpn", "tsm"):
+            if k not in params:
+                raise ValueError(f"params lack the {k!r} network")
+        self.params, self.db, self.cfg, self.variant = params, db, cfg, variant
+        self._db = jnp.asarray(db.embeddings)
+
+    def with_variant(self, variant: str) -> "OliviaNav":
+        return OliviaNav(self.params, self.db, self.cfg, variant)
+
+    def plan(self, image, points, points_valid, goal) -> PlanResult:
+        """Plan from one observation: image (H, W, 3) float [0, 1] or uint8; points (N, 4);
+        points_valid (N,); goal (GOAL_DIM,)."""
+        v = self.variant
+        trajs, logits, j, e_i = _plan(self.params["clip"], self.params["tpn"], self.params["tsm"], self._db,
+                                      jnp.asarray(image), jnp.asarray(points, F32), jnp.asarray(points_valid),
+                                      jnp.asarray(goal, F32), self.cfg, v != "no_image", v != "no_lidar",
+                                      v != "no_text")
+        j = int(j)
+        logits = np.asarray(logits)
+        return PlanResult(np.asarray(trajs), logits, int(np.argmax(logits)), self.db.captions[j],
+                          int(self.db.actions[j]), np.asarray(e_i))
+
+
+def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | None = None,
+                       buffer: LLUBuffer | None = None, buffer_every: int = 5,
+                       sf: pedsim.SocialForceConfig | None = None) -> EpisodeResult:
+    """Drive OLiVia-Nav through ``scn`` (same loop as :func:`splatsearch.social.runner.run_episode`:
+    move the robot, refusing moves into walls, then step the people, who see it). With
+    ``buffer``, every ``buffer_every``-th view (and its privileged scene, for a template
+    captioner) is stored for the LLU. ``plan_ms`` is the mean wall-clock per planning cycle."""
+    cfg = planner.cfg
+    sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
+    caps, valid = scn.padded_capsules()
+    caps, valid = jnp.asarray(caps), jnp.asarray(valid)
+    field = scn.field()
+    path = scn.global_path()
+    seed_key = jax.random.PRNGKey(scn.seed)
+    n = scn.max_steps if max_steps is None else int(max_steps)
+    pose = np.asarray(scn.start, np.float32)
+    peds = scn.peds
+    fstate = follower_init()
+    poses, people, cmds, contacts = [pose], [np.asarray(peds.pos)], [], []
+    ped_contacts = wall_hits = 0
+    reached = False
+    traj_world = None
+    plan_s, n_plans = 0.0, 0
+    for t in range(n):
+        if t % cfg.replan_every == 0 or traj_world is None:
+            tp = max(len(poses) - 1 - PREV_STEPS, 0)
+            t0 = time.perf_counter()
+            obs = observe(scn, pose, people[-1], poses[tp], people[tp], path)
+            res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal)
+            tr = res.trajs[res.index]
+            traj_world = np.vstack([pose[None, :2], robot_to_world(tr[:, :2].astype(np.float64), pose.astype(np.float64))])
+            if np.linalg.norm(scn.goal - pose[:2]) < FINAL_APPROACH:
+                # expert episodes end at the goal tolerance, so the TPN learned to stop about
+                # that far short: on the final approach the NC is given the goal as last point
+                traj_world = np.vstack([traj_world, np.asarray(scn.goal, np.float64)[None]])
+            plan_s += time.perf_counter() - t0
+            n_plans += 1
+            if buffer is not None and not buffer.full and (t // cfg.replan_every) % buffer_every == 0:
+                vel = np.asarray(peds.vel)
+                buffer.add(obs.image, caption_scene(scn, pose, people[-1], vel, action_of(tr)))
+        cmd, fstate = follow_step(cfg.follower, fstate, jnp.asarray(pose), jnp.asarray(traj_world, F32), scn.dt)
+        new_pose = np.asarray(step_unicycle(jnp.asarray(pose), cmd, scn.dt))
+        if float(field_lookup(field, jnp.asarray(new_pose[:2]))) < ROBOT_RADIUS:
+            new_pose, cmd = pose, jnp.zeros(2, F32)
+            wall_hits += 1
+        rv = float(cmd[0]) * np.array([np.cos(new_pose[2]), np.sin(new_pose[2])], np.float32)
+        peds, info = pedsim.step(peds, caps, valid, jnp.asarray(new_pose[:2]), jnp.asarray(rv),
+                                 pedsim.step_key(seed_key, t), sf)
+        pose = new_pose.astype(np.float32)
+        poses.append(pose)
+        people.append(np.asarray(peds.pos))
+        cmds.append(np.asarray(cmd))
+        contacts.append(int(np.asarray(info.robot_contact).sum()))
+        ped_contacts += int(info.ped_contacts)
+        if np.linalg.norm(pose[:2] - scn.goal) < GOAL_TOLERANCE:
+            reached = True
+            break
+    T = len(cmds)
+    return EpisodeResult(scn.name, f"olivia:{planner.variant}", scn.seed, np.asarray(poses),
+                         np.asarray(cmds).reshape(T, 2), np.asarray(people), np.asarray(scn.peds.active),
+                         np.zeros((T, len(np.asarray(scn.peds.active))), bool), np.arange(T + 1) * scn.dt,
+                         np.asarray(scn.goal), np.asarray(scn.start), reached, 0, np.asarray(contacts), wall_hits,
+                         ped_contacts, 1e3 * plan_s / max(n_plans, 1), {}, scn.dt)

@@ -1,0 +1,146 @@
+"""``splatsearch social train`` and ``splatsearch social eval`` (OLiVia-Nav).
+
+Wire into the social CLI with :func:`register_olivia`::
+
+    sub = social_parser.add_subparsers(dest="social_cmd")
+    register_olivia(sub)
+    args = parser.parse_args(); args.func(args)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    """"0-5" or "1000,1001" -> a tuple of ints."""
+    out: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "-" in part:
+            a, b = part.split("-", 1)
+            out += list(range(int(a), int(b) + 1))
+        else:
+            out.append(int(part))
+    if not out or any(s < 0 for s in out):
+        raise argparse.ArgumentTypeError(f"expected seeds like '0-5' or '1000,1001', got {text!r}")
+    return tuple(out)
+
+
+def _scenarios(text: str) -> tuple[str, ...]:
+    from .scenarios import SCENARIOS
+
+    names = tuple(s.strip() for s in text.split(",") if s.strip())
+    bad = [n for n in names if n not in SCENARIOS]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"unknown scenario(s) {bad}; choose from {', '.join(SCENARIOS)}")
+    return names
+
+
+def register_olivia(social_subparsers) -> None:
+    """Add the ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
+    from .scenarios import THESIS_SCENARIOS
+
+    p = social_subparsers.add_parser("train", help="train OLiVia-Nav (SC-CLIP, TPN, TSM) on expert episodes")
+    p.add_argument("--out", default="runs/olivia", help="output directory (checkpoints, data cache, summary)")
+    p.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS)
+    p.add_argument("--train-seeds", type=_ints, default=tuple(range(6)))
+    p.add_argument("--val-seeds", type=_ints, default=(50,))
+    p.add_argument("--clip-epochs", type=int, default=25)
+    p.add_argument("--tpn-epochs", type=int, default=25)
+    p.add_argument("--tsm-epochs", type=int, default=40)
+    p.add_argument("--patience", type=int, default=5)
+    p.add_argument("--every", type=int, default=5, help="sample an expert state every N sim steps")
+    p.add_argument("--augment", type=int, default=1, help="displaced copies per expert state")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_train)
+
+    e = social_subparsers.add_parser("eval", help="OLiVia-Nav vs DWA vs CoNVOI+DWA (Table I) and ablations with LLU (Table II)")
+    e.add_argument("--checkpoint", default="runs/olivia/olivia.npz")
+    e.add_argument("--out", default=None, help="where to write eval.json and eval.md (default: next to the checkpoint)")
+    e.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS)
+    e.add_argument("--seeds", type=_ints, default=(1000, 1001), help="held-out seeds (never trained on)")
+    e.add_argument("--baselines", default="dwa,convoi", help="comma list of dwa, convoi (or empty)")
+    e.add_argument("--ablations", action="store_true", help="also the ablations in Table I")
+    e.add_argument("--llu-scenario", type=_scenarios, default=("doorway",), help="held-out variant for Table II")
+    e.add_argument("--llu-adapt-seeds", type=_ints, default=(500, 501))
+    e.add_argument("--llu-test-seeds", type=_ints, default=(1000, 1001, 1002))
+    e.add_argument("--llu-size", type=int, default=50, help="|B|")
+    e.add_argument("--llu-mu", type=float, default=0.05, help="eq 4 temperature")
+    e.add_argument("--no-table2", action="store_true")
+    e.add_argument("--no-progress", action="store_true")
+    e.set_defaults(func=cmd_eval)
+
+
+def _progress(disabled: bool):
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TimeElapsedColumn(), disable=disabled)
+
+
+def cmd_train(args) -> int:
+    from rich.console import Console
+
+    from .olivia_train import TrainConfig, train_olivia
+
+    for name in ("clip_epochs", "tpn_epochs", "tsm_epochs", "patience", "every"):
+        if getattr(args, name) < 1:
+            raise SystemExit(f"--{name.replace('_', '-')} must be >= 1")
+    if set(args.train_seeds) & set(args.val_seeds):
+        raise SystemExit("train and validation seeds overlap")
+    tc = TrainConfig(scenarios=tuple(args.scenarios), train_seeds=tuple(args.train_seeds),
+                     val_seeds=tuple(args.val_seeds), every=args.every, augment=args.augment,
+                     clip_epochs=args.clip_epochs, tpn_epochs=args.tpn_epochs, tsm_epochs=args.tsm_epochs,
+                     patience=args.patience, seed=args.seed)
+    console = Console()
+    with _progress(args.no_progress) as prog:
+        summary = train_olivia(args.out, tc, log=console.log, progress=prog)
+    console.print(f"trained in {summary['seconds']:.0f} s -> {os.path.join(args.out, 'olivia.npz')}")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from rich.console import Console
+
+    from .llu import LLUConfig
+    from .olivia_train import format_table_one, format_table_two, load_planner, table_one, table_two
+
+    console = Console()
+    planner = load_planner(args.checkpoint)
+    out = args.out or os.path.dirname(os.path.abspath(args.checkpoint))
+    os.makedirs(out, exist_ok=True)
+    baselines = tuple(b for b in args.baselines.split(",") if b)
+    for b in baselines:
+        if b not in ("dwa", "convoi"):
+            raise SystemExit(f"unknown baseline {b!r}; choose from dwa, convoi")
+    variants = ("olivia", "no_image", "no_text", "no_lidar") if args.ablations else ("olivia",)
+    if set(args.seeds) & set(range(0, 100)):
+        console.print("[yellow]warning: seeds below 100 overlap the default training/validation seeds[/]")
+    t0 = time.perf_counter()
+    result: dict = {"checkpoint": args.checkpoint, "seeds": list(args.seeds)}
+    with _progress(args.no_progress) as prog:
+        rows = table_one(planner, args.scenarios, args.seeds, baselines, variants, log=console.log, progress=prog)
+        result["table1"] = rows
+        md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
+        if not args.no_table2:
+            llu = LLUConfig(size=args.llu_size, mu=args.llu_mu)
+            rows2, _, info = table_two(planner, args.llu_scenario[0], args.llu_adapt_seeds, args.llu_test_seeds, llu,
+                                       log=console.log, progress=prog)
+            result["table2"] = rows2
+            result["llu"] = info
+            md += (f"\n\n## Table II ({args.llu_scenario[0]}, held out of training; |B| = {args.llu_size}, i_t = 1)\n\n"
+                   + format_table_two(rows2))
+    result["seconds"] = time.perf_counter() - t0
+    with open(os.path.join(out, "eval.json"), "w", encoding="utf-8") as f:
+        json.dump(result, f, indent=1)
+    with open(os.path.join(out, "eval.md"), "w", encoding="utf-8") as f:
+        f.write(md + "\n")
+    console.print(md)
+    return 0

@@ -1,0 +1,523 @@
+"""Training and evaluation of OLiVia-Nav (thesis 3.4, 3.5): checkpoints, the three training stages
+with early stopping, and the forms of Tables I and II.
+
+Stages (thesis 3.4): 1) SC-CLIP (eq 3), AdamW + cosine schedule; 2) the TPN (eq 2) on frozen E_I;
+3) the TSM (eq 7) on the TPN's plans with k* from the captions' actions. Each stage keeps the
+epoch with the lowest validation loss (early stopping with ``patience``) and writes it as a
+checkpoint (atomically) whenever it improves.
+
+Checkpoints are ``.npz`` files: one array per parameter leaf (``<net>/<path>``), the text database
+D_T, and a JSON header (``__meta__``) holding the format name, the configurations and a SHA-256
+digest over every array's name, dtype, shape and bytes. :func:`load_checkpoint` rejects a file
+that is truncated, is not an npz, has the wrong format, or whose digest does not match.
+
+Learning rates differ from the thesis (1e-4 / 8e-4 / 1e-5 over 100-500 epochs on an H100) because
+a default run here must finish in minutes on 2 CPU cores; they are in :class:`TrainConfig`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+import time
+import zipfile
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from . import sc_clip, tpn, tsm
+from .llu import LLUBuffer, LLUConfig, TextDB, build_text_db, llu_update
+from .olivia import VARIANT_LABELS, VARIANTS, OliviaConfig, OliviaNav, run_olivia_episode
+from .olivia_data import LONG_LEN, SHORT_LEN, Samples, TemplateCaptioner, build_dataset
+from .scenarios import THESIS_SCENARIOS, make_scenario
+from .tokenizer import DEFAULT_TOKENIZER
+
+FORMAT = "splatsearch-olivia-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, corrupt or of the wrong format."""
+
+
+# -- checkpoints ----------------------------------------------------------------------------------
+
+def _flatten(tree, prefix: str) -> dict[str, np.ndarray]:
+    out = {}
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            if "/" in str(k):
+                raise ValueError(f"parameter names may not contain '/': {k!r}")
+            out.update(_flatten(v, f"{prefix}/{k}"))
+    else:
+        out[prefix] = np.asarray(tree)
+    return out
+
+
+def _unflatten(flat: dict[str, np.ndarray]) -> dict:
+    root: dict = {}
+    for key, v in flat.items():
+        parts = key.split("/")
+        d = root
+        for p in parts[:-1]:
+            d = d.setdefault(p, {})
+        d[parts[-1]] = jnp.asarray(v)
+    return root
+
+
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k])
+        h.update(k.encode())
+        h.update(str(a.dtype).encode())
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_checkpoint(path: str, params: dict, *, db: TextDB | None = None, meta: dict | None = None) -> None:
+    """Write ``params`` ({net name: pytree of dicts}) and optionally D_T to ``path`` (.npz),
+    atomically (temporary file in the same directory, fsync, ``os.replace``)."""
+    arrays: dict[str, np.ndarray] = {}
+    for name, tree in params.items():
+        arrays.update(_flatten(tree, f"p/{name}"))
+    if db is not None:
+        arrays["db/embeddings"] = np.asarray(db.embeddings, np.float32)
+        arrays["db/captions"] = np.asarray(db.captions, dtype=np.str_)
+        arrays["db/actions"] = np.asarray(db.actions, np.int32)
+    header = {"format": FORMAT, "version": VERSION, "digest": _digest(arrays), "meta": meta or {}}
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz", dir=d)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, __meta__=np.asarray(json.dumps(header)), **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def load_checkpoint(path: str) -> tuple[dict, TextDB | None, dict]:
+    """(params, D_T or None, meta) from a checkpoint written by :func:`save_checkpoint`.
+    Raises :class:`CheckpointError` for a missing, truncated, foreign or tampered file."""
+    if not os.path.exists(path):
+        raise CheckpointError(f"no checkpoint at {path!r}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as e:
+        raise CheckpointError(f"corrupt checkpoint {path!r}: {type(e).__name__}: {e}") from e
+    if "__meta__" not in arrays:
+        raise CheckpointError(f"{path!r} is not an OLiVia-Nav checkpoint (no header)")
+    try:
+        header = json.loads(str(arrays.pop("__meta__")))
+    except ValueError as e:
+        raise CheckpointError(f"corrupt checkpoint header in {path!r}") from e
+    if header.get("format") != FORMAT or header.get("version") != VERSION:
+        raise CheckpointError(f"{path!r} has format {header.get('format')!r} v{header.get('version')}, "
+                              f"expected {FORMAT!r} v{VERSION}")
+    if _digest(arrays) != header.get("digest"):
+        raise CheckpointError(f"checkpoint {path!r} failed its integrity check (digest mismatch)")
+    params = _unflatten({k[2:]: v for k, v in arrays.items() if k.startswith("p/")})
+    db = None
+    if "db/embeddings" in arrays:
+        db = TextDB(arrays["db/embeddings"].astype(np.float32), [str(s) for s in arrays["db/captions"]],
+                    arrays["db/actions"].astype(np.int32))
+    return params, db, header.get("meta", {})
+
+
+def load_planner(path: str, variant: str = "olivia") -> OliviaNav:
+    """An :class:`OliviaNav` from a full checkpoint (``clip``, ``tpn``, ``tsm`` and D_T)."""
+    params, db, meta = load_checkpoint(path)
+    if db is None or any(k not in params for k in ("clip", "tpn", "tsm")):
+        raise CheckpointError(f"{path!r} is not a full OLiVia-Nav checkpoint (needs clip, tpn, tsm and D_T)")
+    return OliviaNav(params, db, config_from_meta(meta), variant)
+
+
+def config_to_meta(cfg: OliviaConfig) -> dict:
+    return {"clip": dataclasses.asdict(cfg.clip), "tpn": dataclasses.asdict(cfg.tpn), "tsm": dataclasses.asdict(cfg.tsm),
+            "replan_every": cfg.replan_every}
+
+
+def config_from_meta(meta: dict) -> OliviaConfig:
+    c = meta.get("config")
+    if not c:
+        return OliviaConfig()
+    t = dict(c["tpn"])
+    t["channels"] = tuple(t["channels"])
+    return OliviaConfig(sc_clip.SCCLIPConfig(**c["clip"]), tpn.TPNConfig(**t), tsm.TSMConfig(**c["tsm"]),
+                        replan_every=int(c.get("replan_every", 2)))
+
+
+# -- training loop --------------------------------------------------------------------------------
+
+@dataclass
+class StageResult:
+    """params: the best epoch's; train, val: per-epoch mean losses; best_epoch; seconds; stopped_early."""
+
+    params: Any
+    train: list
+    val: list
+    best_epoch: int
+    seconds: float
+    stopped_early: bool
+
+
+def fit(loss_fn: Callable, params, train_batches: Callable[[np.random.Generator], Sequence[dict]],
+        val_batches: Sequence[dict], *, lr: float, weight_decay: float, epochs: int, patience: int,
+        seed: int = 0, schedule: str = "constant", on_epoch: Callable | None = None,
+        on_improve: Callable | None = None, min_delta: float = 1e-4) -> StageResult:
+    """Minimise ``loss_fn(params, batch, key)`` with AdamW; after each epoch evaluate the mean
+    validation loss (deterministic key), keep the best params, stop after ``patience`` epochs
+    without an improvement of ``min_delta``. ``schedule``: "constant" or "cosine" (annealed over
+    all planned steps). ``on_epoch(epoch, train, val)``, ``on_improve(params, epoch)``."""
+    if epochs < 1 or patience < 1:
+        raise ValueError("epochs and patience must be >= 1")
+    rng = np.random.default_rng(seed)
+    n_steps = epochs * max(len(train_batches(np.random.default_rng(seed))), 1)
+    sched = optax.cosine_decay_schedule(lr, n_steps) if schedule == "cosine" else lr
+    opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(sched, weight_decay=weight_decay))
+    state = opt.init(params)
+
+    @jax.jit
+    def step(p, s, batch, key):
+        lv, g = jax.value_and_grad(loss_fn)(p, batch, key)
+        u, s = opt.update(g, s, p)
+        return optax.apply_updates(p, u), s, lv
+
+    val_loss = jax.jit(loss_fn)
+    key = jax.random.PRNGKey(seed)
+    best, best_p, best_epoch, bad = np.inf, params, -1, 0
+    tr_hist, va_hist = [], []
+    t0 = time.perf_counter()
+    stopped = False
+    for ep in range(epochs):
+        ls = []
+        for batch in train_batches(rng):
+            key, k = jax.random.split(key)
+            params, state, lv = step(params, state, batch, k)
+            ls.append(float(lv))
+        vk = jax.random.PRNGKey(12345)
+        v = float(np.mean([float(val_loss(params, b, vk)) for b in val_batches])) if val_batches else float(np.mean(ls))
+        tr_hist.append(float(np.mean(ls)))
+        va_hist.append(v)
+        if on_epoch is not None:
+            on_epoch(ep, tr_hist[-1], v)
+        if v < best - min_delta:
+            best, best_p, best_epoch, bad = v, params, ep, 0
+            if on_improve is not None:
+                on_improve(best_p, ep)
+        else:
+            bad += 1
+            if bad >= patience:
+                stopped = True
+                break
+    return StageResult(best_p, tr_hist, va_hist, best_epoch, time.perf_counter() - t0, stopped)
+
+
+def batches(arrays: dict, batch: int, rng: np.random.Generator | None, drop_last: bool = True) -> list[dict]:
+    """Mini-batches (dicts of jnp arrays) over the rows of ``arrays`` (shuffled with ``rng``)."""
+    n = len(next(iter(arrays.values())))
+    idx = rng.permutation(n) if rng is not None else np.arange(n)
+    stop = n - batch + 1 if (drop_last and n >= batch) else n
+    out = []
+    for s in range(0, max(stop, 1), batch):
+        sel = idx[s:s + batch]
+        if len(sel) == 0:
+            break
+        out.append({k: jnp.asarray(v[sel]) for k, v in arrays.items()})
+    return out
+
+
+# -- the pipeline ---------------------------------------------------------------------------------
+
+@dataclass
+class TrainConfig:
+    """Data: scenarios, train / validation seeds, sampling stride (steps) and augmented copies.
+    Per stage: epochs, batch, lr, weight decay; patience for early stopping; db_size: |D_T|."""
+
+    scenarios: tuple = THESIS_SCENARIOS
+    train_seeds: tuple = tuple(range(6))
+    val_seeds: tuple = (50,)
+    every: int = 5
+    augment: int = 1
+    clip_epochs: int = 25
+    clip_batch: int = 128
+    clip_lr: float = 1e-3
+    clip_wd: float = 0.01
+    tpn_epochs: int = 25
+    tpn_batch: int = 32
+    tpn_lr: float = 8e-4
+    tpn_wd: float = 1e-4
+    tsm_epochs: int = 40
+    tsm_batch: int = 128
+    tsm_lr: float = 1e-3
+    tsm_wd: float = 1e-5
+    patience: int = 5
+    db_size: int = 1000
+    seed: int = 0
+
+
+def _text_arrays(s: Samples):
+    li, lm = DEFAULT_TOKENIZER.encode_batch(s.long, LONG_LEN)
+    si, sm = DEFAULT_TOKENIZER.encode_batch(s.short, SHORT_LEN)
+    return {"image": s.image, "long_ids": li, "long_mask": lm, "short_ids": si, "short_mask": sm}
+
+
+def encode_all_images(params, images: np.ndarray, cfg: sc_clip.SCCLIPConfig, batch: int = 256) -> np.ndarray:
+    f = jax.jit(lambda p, x: sc_clip.encode_images(p, x, cfg))
+    return np.concatenate([np.asarray(f(params, jnp.asarray(images[s:s + batch])))
+                           for s in range(0, len(images), batch)]).astype(np.float32)
+
+
+def encode_all_texts(params, texts: list, cfg: sc_clip.SCCLIPConfig, batch: int = 256) -> np.ndarray:
+    ids, mask = DEFAULT_TOKENIZER.encode_batch(texts, LONG_LEN)
+    f = jax.jit(lambda p, i, m: sc_clip.encode_texts(p, i, m, cfg))
+    return np.concatenate([np.asarray(f(params, jnp.asarray(ids[s:s + batch]), jnp.asarray(mask[s:s + batch])))
+                           for s in range(0, len(texts), batch)]).astype(np.float32)
+
+
+def predict_all(tpn_params, e_img, s: Samples, cfg: tpn.TPNConfig, batch: int = 128) -> np.ndarray:
+    f = jax.jit(lambda p, e, pt, v, g: tpn.predict(p, e, pt, v, g, True, True, cfg))
+    return np.concatenate([np.asarray(f(tpn_params, jnp.asarray(e_img[i:i + batch]), jnp.asarray(s.points[i:i + batch]),
+                                        jnp.asarray(s.points_valid[i:i + batch]), jnp.asarray(s.goal[i:i + batch])))
+                           for i in range(0, len(s), batch)])
+
+
+def k_stars(trajs: np.ndarray, s: Samples) -> np.ndarray:
+    return np.asarray([tsm.best_index(trajs[i], s.future[i], int(s.action[i])) for i in range(len(s))], np.int32)
+
+
+def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfig = OliviaConfig(),
+                 log: Callable[[str], None] = print, progress=None) -> dict:
+    """Run the three stages and write ``out_dir/olivia.npz`` (all networks + D_T), the stage
+    checkpoints and ``out_dir/train_summary.json``. ``progress``: an optional
+    ``rich.progress.Progress`` (a task per stage). Returns the summary dict."""
+    os.makedirs(out_dir, exist_ok=True)
+    t_start = time.perf_counter()
+    summary: dict = {"config": config_to_meta(cfg), "train": dataclasses.asdict(tc)}
+    meta = {"config": config_to_meta(cfg)}
+
+    def task(name, total):
+        return progress.add_task(name, total=total) if progress is not None else None
+
+    def advance(tid, **kw):
+        if progress is not None and tid is not None:
+            progress.update(tid, **kw)
+
+    # data --------------------------------------------------------------------------------------
+    data_path = os.path.join(out_dir, "samples_train.npz")
+    val_path = os.path.join(out_dir, "samples_val.npz")
+    t0 = time.perf_counter()
+    if os.path.exists(data_path) and os.path.exists(val_path):
+        train, val = Samples.load(data_path), Samples.load(val_path)
+        log(f"data: reused {len(train)} train / {len(val)} val samples from {out_dir}")
+    else:
+        n_jobs = len(tc.scenarios) * (len(tc.train_seeds) + len(tc.val_seeds))
+        tid = task("expert episodes + renders", n_jobs)
+        done = [0]
+
+        def prog(i, n, label):
+            done[0] += 1
+            advance(tid, completed=done[0], description=f"expert {label}")
+
+        train = build_dataset(tc.scenarios, tc.train_seeds, every=tc.every, augment=tc.augment, progress=prog)
+        val = build_dataset(tc.scenarios, tc.val_seeds, every=tc.every, augment=tc.augment, progress=prog)
+        train.save(data_path)
+        val.save(val_path)
+    summary["data"] = {"train": len(train), "val": len(val), "seconds": time.perf_counter() - t0,
+                       "actions": np.bincount(train.action, minlength=6).tolist()}
+    log(f"data: {len(train)} train / {len(val)} val samples in {summary['data']['seconds']:.0f} s")
+
+    key = jax.random.PRNGKey(tc.seed)
+    k1, k2, k3 = jax.random.split(key, 3)
+
+    # stage 1: SC-CLIP ---------------------------------------------------------------------------
+    tr_a, va_a = _text_arrays(train), _text_arrays(val)
+    tid = task("SC-CLIP (eq 3)", tc.clip_epochs)
+    r1 = fit(lambda p, b, k: sc_clip.make_loss_fn(cfg.clip)(p, b), sc_clip.init_sc_clip(k1, cfg.clip),
+             lambda rng: batches(tr_a, tc.clip_batch, rng), batches(va_a, tc.clip_batch, None, drop_last=False),
+             lr=tc.clip_lr, weight_decay=tc.clip_wd, epochs=tc.clip_epochs, patience=tc.patience, seed=tc.seed,
+             schedule="cosine",
+             on_epoch=lambda e, a, b: advance(tid, completed=e + 1, description=f"SC-CLIP train {a:.3f} val {b:.3f}"),
+             on_improve=lambda p, e: save_checkpoint(os.path.join(out_dir, "sc_clip.npz"), {"clip": p}, meta=meta))
+    clip_p = r1.params
+    summary["sc_clip"] = _stage_summary(r1)
+    log(f"SC-CLIP: val loss {min(r1.val):.3f} at epoch {r1.best_epoch + 1}/{len(r1.val)} ({r1.seconds:.0f} s)")
+
+    # stage 2: TPN on frozen E_I ---------------------------------------------------------------
+    e_tr = encode_all_images(clip_p, train.image, cfg.clip)
+    e_va = encode_all_images(clip_p, val.image, cfg.clip)
+    tp_tr = {"e_img": e_tr, "points": train.points, "points_valid": train.points_valid, "goal": train.goal,
+             "future": train.future}
+    tp_va = {"e_img": e_va, "points": val.points, "points_valid": val.points_valid, "goal": val.goal,
+             "future": val.future}
+    tid = task("TPN (eq 2, WTA)", tc.tpn_epochs)
+    r2 = fit(tpn.make_loss_fn(cfg.tpn), tpn.init_tpn(k2, cfg.tpn), lambda rng: batches(tp_tr, tc.tpn_batch, rng),
+             batches(tp_va, 128, None, drop_last=False), lr=tc.tpn_lr, weight_decay=tc.tpn_wd, epochs=tc.tpn_epochs,
+             patience=tc.patience, seed=tc.seed + 1, schedule="cosine",
+             on_epoch=lambda e, a, b: advance(tid, completed=e + 1, description=f"TPN train {a:.4f} val {b:.4f}"),
+             on_improve=lambda p, e: save_checkpoint(os.path.join(out_dir, "tpn.npz"), {"tpn": p}, meta=meta))
+    tpn_p = r2.params
+    summary["tpn"] = _stage_summary(r2)
+    log(f"TPN: val WTA {min(r2.val):.4f} m² at epoch {r2.best_epoch + 1}/{len(r2.val)} ({r2.seconds:.0f} s)")
+
+    # stage 3: TSM on the TPN's plans ------------------------------------------------------------
+    traj_tr, traj_va = predict_all(tpn_p, e_tr, train, cfg.tpn), predict_all(tpn_p, e_va, val, cfg.tpn)
+    ks_tr, ks_va = k_stars(traj_tr, train), k_stars(traj_va, val)
+    ts_tr = {"e_text": encode_all_texts(clip_p, train.long, cfg.clip), "trajs": traj_tr, "k_star": ks_tr}
+    ts_va = {"e_text": encode_all_texts(clip_p, val.long, cfg.clip), "trajs": traj_va, "k_star": ks_va}
+    tid = task("TSM (eq 7)", tc.tsm_epochs)
+    r3 = fit(tsm.make_loss_fn(cfg.tsm), tsm.init_tsm(k3, cfg.tsm), lambda rng: batches(ts_tr, tc.tsm_batch, rng),
+             batches(ts_va, 256, None, drop_last=False), lr=tc.tsm_lr, weight_decay=tc.tsm_wd, epochs=tc.tsm_epochs,
+             patience=tc.patience, seed=tc.seed + 2,
+             on_epoch=lambda e, a, b: advance(tid, completed=e + 1, description=f"TSM train {a:.3f} val {b:.3f}"),
+             on_improve=lambda p, e: save_checkpoint(os.path.join(out_dir, "tsm.npz"), {"tsm": p}, meta=meta))
+    tsm_p = r3.params
+    logits = tsm.TSM(cfg.tsm).apply({"params": tsm_p}, jnp.asarray(ts_va["e_text"]), jnp.asarray(traj_va),
+                                    jnp.ones(len(val), bool))
+    acc = float(np.mean(np.asarray(jnp.argmax(logits, -1)) == ks_va))
+    summary["tsm"] = _stage_summary(r3) | {"val_accuracy": acc}
+    log(f"TSM: val CE {min(r3.val):.3f}, selection accuracy {acc:.2f} ({r3.seconds:.0f} s)")
+
+    # D_T: a random subset of the training long captions ----------------------------------------
+    rng = np.random.default_rng(tc.seed)
+    caps = list(dict.fromkeys(train.long))
+    caps = [caps[i] for i in rng.permutation(len(caps))[: tc.db_size]]
+    db = build_text_db(clip_p, caps, cfg.clip)
+    params = {"clip": clip_p, "tpn": tpn_p, "tsm": tsm_p}
+    save_checkpoint(os.path.join(out_dir, "olivia.npz"), params, db=db, meta=meta)
+    summary["db_size"] = len(db.captions)
+    summary["seconds"] = time.perf_counter() - t_start
+    with open(os.path.join(out_dir, "train_summary.json"), "w", encoding="utf-8") as f:
+        json.dump(summary, f, indent=1)
+    log(f"wrote {os.path.join(out_dir, 'olivia.npz')} (total {summary['seconds']:.0f} s)")
+    return summary
+
+
+def _stage_summary(r: StageResult) -> dict:
+    return {"train": r.train, "val": r.val, "best_epoch": r.best_epoch, "seconds": r.seconds,
+            "stopped_early": r.stopped_early}
+
+
+# -- evaluation -----------------------------------------------------------------------------------
+
+def episode_metrics(res, ref) -> dict:
+    """MSE (m²) and Hausdorff (m) against the expert path ``ref`` (EpisodeResult), PSV (s, edge
+    gap < 0.25 m), goal reached, plan ms."""
+    from .metrics import hausdorff, mse, psv_duration
+
+    return {"mse": mse(res.robot, ref.robot), "haus": hausdorff(res.robot, ref.robot),
+            "psv": psv_duration(res.robot[:, :2], res.people, res.dt, 0.25, valid=res.active, robot_radius=0.25,
+                                person_radius=0.25),
+            "reached": bool(res.reached), "plan_ms": float(res.plan_ms)}
+
+
+def _mean(rows: list[dict]) -> dict:
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
+
+
+def run_baseline(scn, kind: str):
+    from .runner import run_episode
+
+    if kind == "convoi":
+        from .convoi import CoNVOI
+        from .vlm import RuleBasedVLM
+
+        return run_episode(scn, "convoi", convoi=CoNVOI(RuleBasedVLM()))
+    return run_episode(scn, kind)
+
+
+def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = (1000, 1001),
+              baselines: Sequence[str] = ("dwa", "convoi"), variants: Sequence[str] = ("olivia",),
+              log: Callable[[str], None] = print, progress=None) -> list[dict]:
+    """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``."""
+    rows = []
+    names = {"dwa": "DWA", "convoi": "CoNVOI+DWA"}
+    tid = progress.add_task("Table I", total=len(scenarios) * len(seeds)) if progress is not None else None
+    for name in scenarios:
+        per: dict[str, list] = {}
+        for seed in seeds:
+            scn = make_scenario(name, seed)
+            ref = run_baseline(scn, "expert")
+            for v in variants:
+                per.setdefault(VARIANT_LABELS[v], []).append(episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref))
+            for b in baselines:
+                per.setdefault(names.get(b, b), []).append(episode_metrics(run_baseline(scn, b), ref))
+            if progress is not None:
+                progress.advance(tid)
+        for method, ms in per.items():
+            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms))
+        log(f"Table I: {name} done")
+    return rows
+
+
+def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = (500, 501),
+              test_seeds: Sequence[int] = (1000, 1001, 1002), llu: LLUConfig = LLUConfig(),
+              train_captions: Sequence[str] | None = None, log: Callable[[str], None] = print,
+              progress=None) -> tuple[list[dict], OliviaNav, dict]:
+    """Table II form on a scenario held out of training: every variant before and after one LLU
+    update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
+    ``adapt_seeds`` episodes; its images are captioned by the template captioner (the offline
+    stand-in for the VLM); D_T is rebuilt from its offline captions plus the new ones."""
+    def evaluate(p: OliviaNav) -> dict:
+        out = {}
+        for seed in test_seeds:
+            scn = make_scenario(scenario, seed)
+            ref = run_baseline(scn, "expert")
+            for v in VARIANTS:
+                out.setdefault(v, []).append(episode_metrics(run_olivia_episode(scn, p.with_variant(v)), ref))
+            if progress is not None:
+                progress.advance(tid)
+        return {v: _mean(r) for v, r in out.items()}
+
+    tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
+    before = evaluate(planner)
+    buf = LLUBuffer(llu.size)
+    for seed in adapt_seeds:
+        if buf.full:
+            break
+        run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=2)
+    if len(buf.images) < 2:
+        raise RuntimeError("the LLU buffer collected fewer than 2 images")
+    cap = TemplateCaptioner()
+    captions = [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
+    imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
+                     for im in buf.images])
+    new_clip, losses = llu_update(planner.params["clip"], imgs, captions, llu, planner.cfg.clip)
+    base = list(train_captions) if train_captions is not None else list(planner.db.captions)
+    db = build_text_db(new_clip, base + captions, planner.cfg.clip)
+    after_planner = OliviaNav(dict(planner.params, clip=new_clip), db, planner.cfg, planner.variant)
+    log(f"LLU: |B| = {len(buf.images)}, eq 4 loss {losses[0]:.3f} -> {losses[-1]:.3f}; |D_T| = {len(db.captions)}")
+    after = evaluate(after_planner)
+    rows = [{"method": VARIANT_LABELS[v], "mse_before": before[v]["mse"], "haus_before": before[v]["haus"],
+             "mse_after": after[v]["mse"], "haus_after": after[v]["haus"]} for v in VARIANTS]
+    return rows, after_planner, {"llu_losses": losses, "buffer": len(buf.images)}
+
+
+def format_table_one(rows: list[dict]) -> str:
+    lines = ["| Scenario | Method | MSE ↓ (m²) | Haus ↓ (m) | PSV ↓ (s) | reached | plan ms |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scenario']} | {r['method']} | {r['mse']:.4f} | {r['haus']:.4f} | {r['psv']:.1f} | "
+                     f"{r['reached']:.2f} | {r['plan_ms']:.1f} |")
+    return "\n".join(lines)
+
+
+def format_table_two(rows: list[dict]) -> str:
+    lines = ["| Method | MSE before ↓ | Haus before ↓ | MSE after ↓ | Haus after ↓ |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['method']} | {r['mse_before']:.4f} | {r['haus_before']:.4f} | {r['mse_after']:.4f} | "
+                     f"{r['haus_after']:.4f} |")
+    return "\n".join(lines)

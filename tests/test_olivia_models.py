@@ -1,0 +1,241 @@
+"""OLiVia-Nav networks and losses: shapes, masking, eq 2, eq 3, eq 4, eq 7 (fast)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from splatsearch.social import llu, sc_clip, tpn, tsm
+from splatsearch.social.olivia_data import ACTIONS, GOAL_DIM, HORIZON, IMG_H, IMG_W, N_POINTS
+from splatsearch.social.tokenizer import DEFAULT_TOKENIZER as TOK
+
+F32 = jnp.float32
+SMALL_CLIP = sc_clip.SCCLIPConfig(width=32, depth=1, heads=2, mlp=64, text_width=32, text_depth=1, text_heads=2,
+                                  text_mlp=64, embed=16, pce_k=4, text_len=40)
+SMALL_TPN = tpn.TPNConfig(C=32, heads=8, K=3, channels=(8, 8, 8, 8, 8), vfe=8, gru=16, embed=16)
+
+
+def _np_log_softmax(x, axis):
+    x = x - x.max(axis, keepdims=True)
+    return x - np.log(np.exp(x).sum(axis, keepdims=True))
+
+
+# -- eq 3 ------------------------------------------------------------------------------------------
+
+def test_contrastive_ce_matches_hand_computation():
+    a = np.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8]], np.float32)
+    b = np.array([[0.8, 0.6], [0.0, 1.0], [1.0, 0.0]], np.float32)
+    scale = 3.0
+    logits = scale * a @ b.T  # rows already unit length
+    i2t = -np.mean(np.diag(_np_log_softmax(logits, 1)))
+    t2i = -np.mean(np.diag(_np_log_softmax(logits.T, 1)))
+    got = float(sc_clip.contrastive_ce(jnp.asarray(a), jnp.asarray(b), scale, symmetric=False))
+    assert got == pytest.approx(i2t, rel=1e-5)
+    got = float(sc_clip.contrastive_ce(jnp.asarray(a), jnp.asarray(b), scale))
+    assert got == pytest.approx(0.5 * (i2t + t2i), rel=1e-5)
+
+
+def test_sc_clip_loss_aligned_is_low_and_shuffled_is_high():
+    e = np.eye(4, 8, dtype=np.float32) * 3.0  # not unit: the loss normalises
+    ls = jnp.asarray(np.log(50.0), F32)
+    good = float(sc_clip.sc_clip_loss(jnp.asarray(e), jnp.asarray(e), jnp.asarray(e), ls, pce_k=4))
+    bad = float(sc_clip.sc_clip_loss(jnp.asarray(e), jnp.asarray(e[::-1]), jnp.asarray(e[::-1]), ls, pce_k=4))
+    assert good < 0.01
+    assert bad > 10.0
+
+
+def test_soft_targets_share_duplicates():
+    ids = jnp.asarray([[1, 5, 2], [1, 5, 2], [1, 6, 2]])
+    t = np.asarray(sc_clip.soft_targets(ids))
+    np.testing.assert_allclose(t, [[0.5, 0.5, 0], [0.5, 0.5, 0], [0, 0, 1]])
+
+
+def test_pce_keeps_top_components():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(12, 6)).astype(np.float32)
+    np.testing.assert_allclose(np.asarray(sc_clip.pce(jnp.asarray(x), 6)), x, atol=1e-4)
+    # rank-1 data (plus the mean) is reconstructed exactly by one component
+    u = rng.normal(size=(12, 1)) * rng.normal(size=(1, 6)) + 2.0
+    np.testing.assert_allclose(np.asarray(sc_clip.pce(jnp.asarray(u, F32), 1)), u, atol=1e-4)
+    r = np.asarray(sc_clip.pce(jnp.asarray(x), 2))
+    assert np.linalg.matrix_rank(r - r.mean(0), tol=1e-4) == 2
+
+
+# -- eq 4 ------------------------------------------------------------------------------------------
+
+def test_llu_loss_matches_eq4_by_hand():
+    e_i = np.array([[1.0, 0.0], [0.0, 2.0]], np.float32)
+    e_t = np.array([[1.0, 0.0], [0.6, 0.8]], np.float32)
+    mu = 0.5
+    # cosine similarities: [[1, 0.6], [0, 0.8]]
+    s = np.array([[1.0, 0.6], [0.0, 0.8]]) / mu
+    i2t = -np.mean([s[0, 0] - np.log(np.exp(s[0]).sum()), s[1, 1] - np.log(np.exp(s[1]).sum())])
+    t2i = -np.mean([s[0, 0] - np.log(np.exp(s[:, 0]).sum()), s[1, 1] - np.log(np.exp(s[:, 1]).sum())])
+    assert float(llu.llu_loss(jnp.asarray(e_i), jnp.asarray(e_t), mu, symmetric=False)) == pytest.approx(i2t, rel=1e-5)
+    assert float(llu.llu_loss(jnp.asarray(e_i), jnp.asarray(e_t), mu)) == pytest.approx(0.5 * (i2t + t2i), rel=1e-5)
+    # a lower temperature sharpens: the matched pairs dominate more
+    assert float(llu.llu_loss(jnp.asarray(e_i), jnp.asarray(e_t), 0.1)) < float(llu.llu_loss(jnp.asarray(e_i), jnp.asarray(e_t), 1.0))
+    with pytest.raises(ValueError, match="temperature"):
+        llu.llu_loss(jnp.asarray(e_i), jnp.asarray(e_t), 0.0)
+
+
+def test_text_db_retrieves_by_cosine():
+    db = llu.TextDB(np.eye(3, dtype=np.float32), ["a", "b", "c"], np.array([0, 1, 2]))
+    i, e = db.retrieve(np.array([0.1, 0.2, 5.0]))
+    assert i == 2 and np.allclose(e, [0, 0, 1])
+
+
+# -- SC-CLIP encoders --------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def clip_params():
+    return sc_clip.init_sc_clip(jax.random.PRNGKey(0), SMALL_CLIP)
+
+
+_enc_img = jax.jit(lambda p, x: sc_clip.encode_images(p, x, SMALL_CLIP))
+_enc_txt = jax.jit(lambda p, i, m: sc_clip.encode_texts(p, i, m, SMALL_CLIP))
+
+
+def test_sc_clip_shapes_and_unit_norm(clip_params):
+    img = jnp.asarray(np.random.default_rng(0).integers(0, 255, (3, IMG_H, IMG_W, 3)), jnp.uint8)
+    e = _enc_img(clip_params, img)
+    assert e.shape == (3, 16)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(e), axis=1), 1.0, atol=1e-5)
+    # uint8 and the same image in [0, 1] floats give the same embedding
+    e2 = _enc_img(clip_params, img.astype(F32) / 255.0)
+    np.testing.assert_allclose(np.asarray(e), np.asarray(e2), atol=1e-5)
+
+
+def test_text_encoder_ignores_padding(clip_params):
+    text = "a person in a red shirt walking towards you"
+    i1, m1 = TOK.encode(text, 16)
+    i2, m2 = TOK.encode(text, 40)
+    i3 = i2.copy()
+    i3[~m2] = 77  # garbage in the padded slots must not matter either
+    e = [_enc_txt(clip_params, jnp.asarray(i[None]), jnp.asarray(m[None])) for i, m in ((i1, m1), (i2, m2), (i3, m2))]
+    np.testing.assert_allclose(np.asarray(e[0]), np.asarray(e[1]), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(e[1]), np.asarray(e[2]), atol=1e-5)
+    other = _enc_txt(clip_params, *map(lambda a: jnp.asarray(a[None]), TOK.encode("open space", 16)))
+    assert float(jnp.abs(other - e[0]).max()) > 1e-3
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="divisible"):
+        sc_clip.SCCLIPConfig(patch=7)
+    with pytest.raises(ValueError, match="divisible"):
+        tpn.TPNConfig(C=100, heads=32)
+    with pytest.raises(ValueError, match="five residual"):
+        tpn.TPNConfig(channels=(8, 8))
+
+
+# -- TPN -------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tpn_setup():
+    params = tpn.init_tpn(jax.random.PRNGKey(1), SMALL_TPN)
+    rng = np.random.default_rng(1)
+    B = 2
+    pts = rng.uniform([-2, -4, 0, 0], [6, 4, 2, 1], (B, N_POINTS, 4)).astype(np.float32)
+    pts[..., 3] = np.round(pts[..., 3])
+    inputs = (jnp.asarray(rng.normal(size=(B, 16)), F32), jnp.asarray(pts), jnp.ones((B, N_POINTS), bool),
+              jnp.asarray(rng.normal(size=(B, GOAL_DIM)), F32))
+    f = jax.jit(lambda p, e, pt, v, g, ui, ul: tpn.TPN(SMALL_TPN).apply({"params": p}, e, pt, v, g, ui, ul))
+    return params, inputs, f
+
+
+def test_tpn_shapes(tpn_setup):
+    params, (e, pts, v, g), f = tpn_setup
+    out = f(params, e, pts, v, g, jnp.ones(2, bool), jnp.ones(2, bool))
+    assert out.shape == (2, SMALL_TPN.K, HORIZON, 3)
+    assert np.all(np.isfinite(np.asarray(out)))
+    # the full-size configuration follows the thesis: C = 128, 32 heads, K = 5, 10 poses
+    c = tpn.TPNConfig()
+    assert (c.C, c.heads, c.K, c.horizon, len(c.channels)) == (128, 32, 5, 10, 5)
+
+
+def test_tpn_modality_masks(tpn_setup):
+    params, (e, pts, v, g), f = tpn_setup
+    on, off = jnp.ones(2, bool), jnp.zeros(2, bool)
+    e2 = e + 3.0
+    pts2 = pts.at[..., :2].add(0.7)
+    # w/o E_I: the image embedding has no influence; with it, it does
+    np.testing.assert_allclose(np.asarray(f(params, e, pts, v, g, off, on)), np.asarray(f(params, e2, pts, v, g, off, on)),
+                               atol=1e-5)
+    assert float(jnp.abs(f(params, e, pts, v, g, on, on) - f(params, e2, pts, v, g, on, on)).max()) > 1e-4
+    # w/o E_L: the points have no influence; with them, they do
+    np.testing.assert_allclose(np.asarray(f(params, e, pts, v, g, on, off)), np.asarray(f(params, e, pts2, v, g, on, off)),
+                               atol=1e-5)
+    assert float(jnp.abs(f(params, e, pts, v, g, on, on) - f(params, e, pts2, v, g, on, on)).max()) > 1e-4
+    # invalid points are ignored
+    v_half = v.at[:, ::2].set(False)
+    pts3 = pts.at[:, ::2, :2].add(2.0)
+    np.testing.assert_allclose(np.asarray(f(params, e, pts, v_half, g, on, on)),
+                               np.asarray(f(params, e, pts3, v_half, g, on, on)), atol=1e-5)
+    # masking is per sample: sample 1 keeps its image
+    mixed = jnp.asarray([False, True])
+    d = np.abs(np.asarray(f(params, e, pts, v, g, mixed, on) - f(params, e2, pts, v, g, mixed, on)))
+    assert d[0].max() < 1e-5 and d[1].max() > 1e-4
+
+
+def test_pillar_index_dump_slot():
+    c = tpn.TPNConfig()
+    pts = jnp.asarray([[0.1, 0.1, 0, 0], [-5.0, 0, 0, 0], [1.0, 1.0, 0, 0], [5.9, 3.9, 0, 0]], F32)
+    valid = jnp.asarray([True, True, False, True])
+    idx = np.asarray(tpn.pillar_index(pts, valid, c))
+    dump = c.bev * c.bev
+    assert idx[1] == dump and idx[2] == dump  # outside the grid, invalid
+    assert idx[0] == int((0.1 + 4) / 0.25) * c.bev + int((0.1 + 2) / 0.25)
+    assert idx[3] == (c.bev - 1) * c.bev + (c.bev - 1)
+
+
+def test_wta_loss_picks_the_closest_head():
+    target = jnp.zeros((1, HORIZON, 3), F32)
+    pred = jnp.stack([jnp.full((HORIZON, 3), 1.0), jnp.full((HORIZON, 3), 0.2), jnp.full((HORIZON, 3), -0.5)])[None]
+    err = np.asarray(tpn.head_errors(pred, target, yaw_weight=0.3))[0]
+    np.testing.assert_allclose(err, [2.3, 0.092, 0.575], rtol=1e-5)
+    assert float(tpn.wta_loss(pred, target)) == pytest.approx(err.min(), rel=1e-5)
+    assert tpn.closest_head(pred, target).tolist() == [1]
+    g = np.asarray(jax.jit(jax.grad(lambda p: tpn.wta_loss(p, target)))(pred))[0]
+    assert np.abs(g[1]).sum() > 0 and np.abs(g[0]).sum() == 0 and np.abs(g[2]).sum() == 0
+    # relaxed WTA also moves the losers, a little
+    g = np.asarray(jax.jit(jax.grad(lambda p: tpn.wta_loss(p, target, eps=0.05)))(pred))[0]
+    assert np.abs(g[0]).sum() > 0 and np.abs(g[0]).sum() < np.abs(g[1]).sum() * 20
+
+
+def test_wta_wraps_heading_error():
+    target = jnp.zeros((1, HORIZON, 3), F32).at[..., 2].set(np.pi - 0.05)
+    pred = jnp.zeros((1, 1, HORIZON, 3), F32).at[..., 2].set(-np.pi + 0.05)
+    assert float(tpn.wta_loss(pred, target, yaw_weight=1.0)) == pytest.approx(0.01, rel=1e-3)
+
+
+# -- TSM -------------------------------------------------------------------------------------------
+
+def test_tsm_shapes_loss_and_text_mask():
+    cfg = tsm.TSMConfig(embed=16, width=32, K=3)
+    p = tsm.init_tsm(jax.random.PRNGKey(2), cfg)
+    rng = np.random.default_rng(2)
+    e = jnp.asarray(rng.normal(size=(4, 16)), F32)
+    tr = jnp.asarray(rng.normal(size=(4, 3, HORIZON, 3)), F32)
+    apply = jax.jit(lambda e, tr, u: tsm.TSM(cfg).apply({"params": p}, e, tr, u))
+    logits = apply(e, tr, jnp.ones(4, bool))
+    assert logits.shape == (4, 3)
+    off = jnp.zeros(4, bool)
+    np.testing.assert_allclose(np.asarray(apply(e, tr, off)), np.asarray(apply(e * 5 + 1, tr, off)), atol=1e-5)
+    # eq 7 by hand
+    k = jnp.asarray([0, 2, 1, 1])
+    ref = -np.mean(_np_log_softmax(np.asarray(logits), 1)[np.arange(4), np.asarray(k)])
+    assert float(tsm.tsm_loss(logits, k)) == pytest.approx(ref, rel=1e-5)
+
+
+def test_best_index_follows_the_caption_action():
+    t = np.linspace(0.1, 1.0, HORIZON)
+    straight = np.stack([2.4 * t, 0 * t, 0 * t], -1)
+    right = np.stack([2.2 * t, -0.6 * t, -0.1 * t], -1)
+    stop = np.stack([0.3 * t, 0 * t, 0 * t], -1)
+    trajs = np.stack([straight, right, stop])
+    expert = straight + np.array([0, -0.2, 0])  # closest to "straight" but the caption says keep right
+    assert tsm.best_index(trajs, expert, ACTIONS.index("keep_right")) == 1
+    assert tsm.best_index(trajs, expert, ACTIONS.index("straight")) == 0
+    assert tsm.best_index(trajs, expert, ACTIONS.index("yield")) == 2
+    # no trajectory turns left: fall back to the closest
+    assert tsm.best_index(trajs, expert, ACTIONS.index("turn_left")) == 0

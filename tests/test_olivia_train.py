@@ -1,0 +1,167 @@
+"""OLiVia-Nav training pieces: a tiny training run, LLU, checkpoints, CLI wiring (fast)."""
+
+import argparse
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from splatsearch.social import olivia_train as ot
+from splatsearch.social import sc_clip
+from splatsearch.social.llu import LLUConfig, TextDB, build_text_db, llu_update
+from splatsearch.social.olivia_data import IMG_H, IMG_W
+from splatsearch.social.tokenizer import DEFAULT_TOKENIZER as TOK
+
+TINY = sc_clip.SCCLIPConfig(width=32, depth=1, heads=2, mlp=64, text_width=32, text_depth=1, text_heads=2,
+                            text_mlp=64, embed=16, pce_k=4, text_len=40)
+CAPTIONS = ["a person in a red shirt ahead you should keep to the right",
+            "the space is open you should continue straight",
+            "a wall is ahead you should turn left",
+            "people standing in a group you should slow down and yield",
+            "a person in a blue shirt walking away you should keep to the left",
+            "narrow hallway with walls on both sides continue straight",
+            "a person in a green shirt crossing your path you should yield",
+            "a corner ahead you should turn right"]
+
+
+def _pairs():
+    # images whose colour encodes the caption index, so the pairs are learnable
+    rng = np.random.default_rng(0)
+    imgs = np.zeros((8, IMG_H, IMG_W, 3), np.uint8)
+    for i in range(8):
+        imgs[i] = (np.array([i & 1, (i >> 1) & 1, (i >> 2) & 1]) * 200 + 30).astype(np.uint8)
+        imgs[i] += rng.integers(0, 20, imgs[i].shape, dtype=np.uint8)
+    return imgs
+
+
+@pytest.fixture(scope="module")
+def tiny_params():
+    return sc_clip.init_sc_clip(jax.random.PRNGKey(0), TINY)
+
+
+@pytest.mark.slow  # about a minute of XLA compilation on 2 cores; the LLU update test trains by default
+def test_tiny_sc_clip_training_lowers_the_loss(tiny_params):
+    imgs = _pairs()
+    li, lm = TOK.encode_batch(CAPTIONS, 32)
+    si, sm = TOK.encode_batch([c.split(" you ")[0] for c in CAPTIONS], 16)
+    batch = {"image": imgs, "long_ids": li, "long_mask": lm, "short_ids": si, "short_mask": sm}
+    loss = sc_clip.make_loss_fn(TINY)
+    jb = {k: jnp.asarray(v) for k, v in batch.items()}
+    before = float(jax.jit(loss)(tiny_params, jb))
+    r = ot.fit(lambda p, b, k: loss(p, b), tiny_params, lambda rng: ot.batches(batch, 8, rng), [jb],
+               lr=3e-3, weight_decay=0.0, epochs=15, patience=15)
+    assert len(r.train) == 15 and not r.stopped_early
+    assert min(r.val) < 0.5 * before
+    assert r.val[r.best_epoch] == min(r.val)
+    # the best params are the ones returned
+    assert float(jax.jit(loss)(r.params, jb)) == pytest.approx(min(r.val), rel=1e-4)
+
+
+def test_fit_stops_early_when_validation_stalls(tiny_params):
+    calls = []
+    r = ot.fit(lambda p, b, k: jnp.sum(p["w"] ** 2) + 0 * b["x"].sum(), {"w": jnp.ones(3)},
+               lambda rng: [{"x": jnp.zeros(1)}], [{"x": jnp.zeros(1)}], lr=0.0, weight_decay=0.0, epochs=50,
+               patience=3, on_improve=lambda p, e: calls.append(e))
+    assert r.stopped_early and len(r.val) == 4 and calls == [0]
+    with pytest.raises(ValueError):
+        ot.fit(lambda p, b, k: 0.0, {}, lambda rng: [], [], lr=1e-3, weight_decay=0, epochs=0, patience=1)
+
+
+def test_llu_update_lowers_eq4_and_rebuilds_db(tiny_params):
+    imgs = _pairs()
+    cfg = LLUConfig(size=8, mu=0.1, steps=15, lr=3e-3, batch=8)
+    new, losses = llu_update(tiny_params, imgs, CAPTIONS, cfg, TINY)
+    assert len(losses) == 15 and losses[-1] < losses[0]
+    db = build_text_db(new, CAPTIONS + CAPTIONS[:2], TINY)
+    assert db.embeddings.shape == (8, 16) and len(db.captions) == 8  # duplicates dropped
+    np.testing.assert_allclose(np.linalg.norm(db.embeddings, axis=1), 1, atol=1e-5)
+    assert [int(a) for a in db.actions[:4]] == [1, 0, 3, 5]
+    with pytest.raises(ValueError):
+        llu_update(tiny_params, imgs[:1], CAPTIONS[:1], cfg, TINY)
+
+
+def _toy_params():
+    return {"tsm": {"Dense_0": {"kernel": jnp.arange(6.0).reshape(2, 3), "bias": jnp.zeros(3)}},
+            "tpn": {"query": jnp.ones((1, 2, 4))}}
+
+
+def test_checkpoint_round_trip(tmp_path):
+    path = str(tmp_path / "c.npz")
+    db = TextDB(np.eye(2, 4, dtype=np.float32), ["go straight", "keep right"], np.array([0, 1], np.int32))
+    ot.save_checkpoint(path, _toy_params(), db=db, meta={"config": {}, "note": "x"})
+    assert [f for f in os.listdir(tmp_path) if f.startswith(".ckpt-")] == []  # no temporary left behind
+    params, db2, meta = ot.load_checkpoint(path)
+    np.testing.assert_array_equal(np.asarray(params["tsm"]["Dense_0"]["kernel"]), np.arange(6.0).reshape(2, 3))
+    assert params["tpn"]["query"].shape == (1, 2, 4)
+    assert db2.captions == db.captions and np.array_equal(db2.embeddings, db.embeddings)
+    assert meta["note"] == "x"
+
+
+def test_corrupt_checkpoints_are_rejected(tmp_path):
+    path = str(tmp_path / "c.npz")
+    ot.save_checkpoint(path, _toy_params())
+    raw = open(path, "rb").read()
+    # truncated
+    open(tmp_path / "trunc.npz", "wb").write(raw[: len(raw) // 2])
+    with pytest.raises(ot.CheckpointError):
+        ot.load_checkpoint(str(tmp_path / "trunc.npz"))
+    # not a zip at all
+    open(tmp_path / "junk.npz", "wb").write(b"not a checkpoint")
+    with pytest.raises(ot.CheckpointError):
+        ot.load_checkpoint(str(tmp_path / "junk.npz"))
+    # an array changed but the header kept: the digest catches it
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["p/tsm/Dense_0/kernel"] = arrays["p/tsm/Dense_0/kernel"] + 1
+    np.savez(tmp_path / "tampered.npz", **arrays)
+    with pytest.raises(ot.CheckpointError, match="integrity"):
+        ot.load_checkpoint(str(tmp_path / "tampered.npz"))
+    # a plain npz without our header
+    np.savez(tmp_path / "foreign.npz", a=np.zeros(2))
+    with pytest.raises(ot.CheckpointError, match="header"):
+        ot.load_checkpoint(str(tmp_path / "foreign.npz"))
+    with pytest.raises(ot.CheckpointError, match="no checkpoint"):
+        ot.load_checkpoint(str(tmp_path / "missing.npz"))
+    # a partial checkpoint is not a planner
+    with pytest.raises(ot.CheckpointError, match="full"):
+        ot.load_planner(path)
+
+
+def test_register_olivia_adds_train_and_eval():
+    from splatsearch.social.olivia_cli import cmd_eval, cmd_train, register_olivia
+
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers(dest="cmd")
+    register_olivia(sub)
+    a = parser.parse_args(["train", "--train-seeds", "0-2", "--scenarios", "hallway,doorway", "--no-progress"])
+    assert a.func is cmd_train and a.train_seeds == (0, 1, 2) and a.scenarios == ("hallway", "doorway")
+    b = parser.parse_args(["eval", "--seeds", "1000,1003", "--checkpoint", "x.npz"])
+    assert b.func is cmd_eval and b.seeds == (1000, 1003)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["train", "--scenarios", "nowhere"])
+    with pytest.raises(SystemExit):
+        parser.parse_args(["eval", "--seeds", "a-b"])
+
+
+@pytest.mark.slow
+def test_closed_loop_episode_with_untrained_networks():
+    from splatsearch.social import tpn, tsm
+    from splatsearch.social.llu import LLUBuffer
+    from splatsearch.social.olivia import OliviaConfig, OliviaNav, run_olivia_episode
+    from splatsearch.social.scenarios import make_scenario
+
+    cfg = OliviaConfig()
+    k = jax.random.split(jax.random.PRNGKey(0), 3)
+    params = {"clip": sc_clip.init_sc_clip(k[0], cfg.clip), "tpn": tpn.init_tpn(k[1], cfg.tpn),
+              "tsm": tsm.init_tsm(k[2], cfg.tsm)}
+    db = build_text_db(params["clip"], CAPTIONS, cfg.clip)
+    planner = OliviaNav(params, db, cfg)
+    buf = LLUBuffer(3)
+    res = run_olivia_episode(make_scenario("hallway", 1000), planner, max_steps=12, buffer=buf, buffer_every=1)
+    assert res.robot.shape == (13, 3) and res.people.shape[0] == 13 and res.cmds.shape == (12, 2)
+    assert buf.full and buf.images[0].shape == (IMG_H, IMG_W, 3)
+    assert res.plan_ms > 0
+    with pytest.raises(ValueError):
+        OliviaNav(params, db, cfg, variant="nope")
