@@ -123,8 +123,9 @@ def test_jitted_step_compiles_once_per_capacity_bucket():
         m.update(f.rgb, f.depth, f.viewmat)
     assert m.map.capacity == 4096
     after = m._step._cache_size()
-    # submaps come in power-of-two capacities: 1024, 2048 or the full 4096 at most
-    assert 1 <= after - before <= 3
+    # submaps come in power-of-two capacities: 1024, 2048 or the full 4096 at most (fewer when
+    # an earlier test with the same camera already compiled some of them: the cache is shared)
+    assert after >= 1 and after - before <= 3
     # a second mapper with the same camera and loss shares the compiled step
     m2 = Mapper(K, W, H, cfg)
     for f in frames:
