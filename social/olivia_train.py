@@ -19,22 +19,31 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import os
-import tempfile
 import time
 import zipfile
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
+from splatsearch.io import atomic_write_bytes
+
 from . import sc_clip, tpn, tsm
 from .llu import LLUBuffer, LLUConfig, TextDB, build_text_db, llu_update
-from .olivia import VARIANT_LABELS, VARIANTS, OliviaConfig, OliviaNav, run_olivia_episode
+from .olivia import (
+    VARIANT_LABELS,
+    VARIANTS,
+    OliviaConfig,
+    OliviaNav,
+    run_olivia_episode,
+)
 from .olivia_data import LONG_LEN, SHORT_LEN, Samples, TemplateCaptioner, build_dataset
 from .scenarios import THESIS_SCENARIOS, make_scenario
 from .tokenizer import DEFAULT_TOKENIZER
@@ -94,18 +103,9 @@ def save_checkpoint(path: str, params: dict, *, db: TextDB | None = None, meta: 
         arrays["db/captions"] = np.asarray(db.captions, dtype=np.str_)
         arrays["db/actions"] = np.asarray(db.actions, np.int32)
     header = {"format": FORMAT, "version": VERSION, "digest": _digest(arrays), "meta": meta or {}}
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz", dir=d)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, __meta__=np.asarray(json.dumps(header)), **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    buf = io.BytesIO()
+    np.savez(buf, __meta__=np.asarray(json.dumps(header)), **arrays)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def load_checkpoint(path: str) -> tuple[dict, TextDB | None, dict]:
