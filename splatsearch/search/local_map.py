@@ -20,6 +20,8 @@ import numpy as np
 from splatsearch.gaussians import GaussianMap
 from splatsearch.mapper import Frame, Mapper, MapperConfig
 
+from .novel_views import crop_box_for
+
 
 @dataclass
 class LocalMapConfig:
@@ -124,12 +126,8 @@ def region_frame(rgb: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, K: np.
 
 
 def region_box(bbox_min: Sequence[float], bbox_max: Sequence[float], margin: float) -> tuple[np.ndarray, np.ndarray]:
-    """The object's extent grown by ``margin`` metres, as (lo (3,), hi (3,))."""
-    lo = np.asarray(bbox_min, np.float64).reshape(3) - margin
-    hi = np.asarray(bbox_max, np.float64).reshape(3) + margin
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
-        raise ValueError("bbox must be finite with bbox_min <= bbox_max")
-    return lo, hi
+    """The object's extent grown by ``margin`` metres, floor kept, as (lo (3,), hi (3,))."""
+    return crop_box_for(bbox_min, bbox_max, margin, floor_z=None)
 
 
 def build_local_map(frames: Sequence[Frame], K: np.ndarray, width: int, height: int, lo: np.ndarray, hi: np.ndarray,
