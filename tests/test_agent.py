@@ -75,3 +75,18 @@ def test_longer_episode_end_to_end(episode):
     ep, env = episode
     r = run_episode(ep, AgentConfig(), env=env, max_steps=150)
     assert r.steps <= 150 and r.n_objects >= 0 and np.isfinite(r.path_length)
+
+
+def test_observation_crops_stay_matchable_for_sliver_masks():
+    from splatsearch.agent import _crop_around
+    from splatsearch.search import SIFTMatcher
+
+    rgb = np.random.default_rng(0).uniform(0, 1, (240, 320, 3)).astype(np.float32)
+    mask = np.zeros((240, 320), bool)
+    mask[10:114, 0:4] = True  # a 4-px sliver at the image border
+    crop = _crop_around(rgb, mask)
+    assert crop.shape[0] >= 104 and crop.shape[1] >= 16
+    SIFTMatcher().count(rgb, crop)  # no "image too small" error
+    mask[:] = False
+    mask[100:140, 100:180] = True
+    assert _crop_around(rgb, mask).shape == (80, 160, 3)  # grown by half the box each side

@@ -355,3 +355,23 @@ def test_bad_input(house, env):
         env.renderer.render(np.eye(4), np.zeros((3, 3)), 320, 240)
     with pytest.raises(ValueError):
         sim.intrinsics(0, 240)
+
+
+def test_surface_detail_gives_feature_matching_texture(house, env):
+    import cv2
+
+    vm = env.viewmat([*env.nav.cell_to_world(np.argwhere(env.nav.navigable)[100]), 0.0])
+    flat = sim.raycast.HouseRenderer(house, detail=0.0).render(vm, env.K, 320, 240)
+    rich = env.renderer.render(vm, env.K, 320, 240)
+    # geometry and labels do not depend on the surface detail, only the colours do
+    np.testing.assert_array_equal(flat.instance, rich.instance)
+    np.testing.assert_allclose(flat.depth, rich.depth)
+    assert np.abs(flat.rgb - rich.rgb).max() > 0.05
+    sift = cv2.SIFT_create()
+
+    def n_keypoints(img):
+        return len(sift.detect(cv2.cvtColor((img * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)))
+
+    assert n_keypoints(rich.rgb) > 2 * n_keypoints(flat.rgb)
+    with pytest.raises(ValueError, match="detail"):
+        sim.raycast.HouseRenderer(house, detail=1.5)

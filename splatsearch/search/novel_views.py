@@ -103,6 +103,47 @@ def hemisphere_viewpoints(centroid: Sequence[float], radius: float = 1.5, n_view
     return np.stack(out)
 
 
+def clear_viewpoints(viewmats: np.ndarray, blocked: np.ndarray, origin_xy: Sequence[float], cell_size: float,
+                     target_xy: Sequence[float], skip_radius: float = 0.0, free: np.ndarray | None = None) -> np.ndarray:
+    """Which cameras see ``target_xy`` across a 2-D obstacle map: (V,) bool.
+
+    A camera is kept when the cell under it is inside the map, not blocked (and ``free`` there,
+    when a known-free mask is given: a camera over unknown space may be inside a wall), and no
+    blocked cell lies on the segment from it to the target, ignoring the last ``skip_radius``
+    metres (the object's own footprint). Hemisphere cameras behind a wall see the wall's back,
+    which no goal image shows.
+
+    Args:
+        viewmats: (V, 4, 4) world-to-camera matrices.
+        blocked: (H, W) bool obstacle cells; row = y, col = x, cell (0, 0) at ``origin_xy``.
+        origin_xy: world (x, y) in metres of the grid's corner; cell_size: metres per cell.
+        target_xy: (2,) world metres; skip_radius: metres around it not checked.
+        free: optional (H, W) bool known-free cells.
+    """
+    vms = np.asarray(viewmats, np.float64).reshape(-1, 4, 4)
+    blocked = np.asarray(blocked, bool)
+    if blocked.ndim != 2 or not cell_size > 0:
+        raise ValueError("blocked must be a 2-D mask and cell_size > 0")
+    o = np.asarray(origin_xy, np.float64).reshape(2)
+    t = np.asarray(target_xy, np.float64).reshape(2)
+    H, W = blocked.shape
+    keep = np.zeros(len(vms), bool)
+    for i, vm in enumerate(vms):
+        eye = -vm[:3, :3].T @ vm[:3, 3]
+        seg = t - eye[:2]
+        length = float(np.linalg.norm(seg))
+        n = max(2, int(np.ceil(max(length - skip_radius, 0.0) / (0.5 * cell_size))) + 1)
+        s = np.linspace(0.0, max(length - skip_radius, 0.0) / max(length, 1e-9), n)
+        pts = eye[:2] + s[:, None] * seg
+        rc = np.floor((pts[:, ::-1] - o[::-1]) / cell_size).astype(np.int64)
+        if not ((rc >= 0) & (rc < [H, W])).all():
+            continue
+        if free is not None and not free[rc[0, 0], rc[0, 1]]:
+            continue
+        keep[i] = not blocked[rc[:, 0], rc[:, 1]].any()
+    return keep
+
+
 def crop_box_for(bbox_min: Sequence[float], bbox_max: Sequence[float], margin: float = 0.3,
                  floor_z: float | None = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """A world box (lo (3,), hi (3,)) around an object's extent for object-centric renders:

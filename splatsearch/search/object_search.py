@@ -82,7 +82,8 @@ class NVSMConfig:
 
 def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.ndarray, width: int, height: int, *,
                   matcher: Matcher | None = None, inpainter: Inpainter | None = None,
-                  config: NVSMConfig | None = None, bbox: tuple | None = None) -> NVSMResult:
+                  config: NVSMConfig | None = None, bbox: tuple | None = None,
+                  viewmats: np.ndarray | None = None) -> NVSMResult:
     """Render the NVSM views of one object, complete them and match them to the goal image.
 
     Args:
@@ -93,11 +94,18 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
         matcher, inpainter: defaults :class:`SIFTMatcher` / :class:`OpenCVInpainter`.
         config: :class:`NVSMConfig`.
         bbox: (min (3,), max (3,)) object extent in metres, used when ``config.crop``.
+        viewmats: optional (V, 4, 4) cameras to use instead of ``config``'s hemisphere (e.g. the
+            hemisphere cameras that :func:`~splatsearch.search.novel_views.clear_viewpoints` kept).
     """
     cfg = config or NVSMConfig()
     matcher = matcher or SIFTMatcher()
     inpainter = inpainter or OpenCVInpainter()
-    vms = hemisphere_viewpoints(centroid, cfg.radius, cfg.n_views, cfg.elevations_deg)
+    if viewmats is None:
+        vms = hemisphere_viewpoints(centroid, cfg.radius, cfg.n_views, cfg.elevations_deg)
+    else:
+        vms = np.asarray(viewmats, np.float64)
+        if vms.ndim != 3 or vms.shape[1:] != (4, 4) or len(vms) == 0:
+            raise ValueError(f"viewmats must have shape (V, 4, 4) with V >= 1, got {vms.shape}")
     box = None
     if cfg.crop and bbox is not None:
         box = crop_box_for(bbox[0], bbox[1], cfg.crop_margin, cfg.floor_z)
