@@ -92,7 +92,8 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIA
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     eps = make_eval_episodes(split, n, seed)
-    jobs = [(e.to_json(), v, max_steps) for v in variants for e in eps]
+    # episode-major: an interrupted run still holds every variant on the same first episodes
+    jobs = [(e.to_json(), v, max_steps) for e in eps for v in variants]
     results: list[dict] = []
     t0 = time.perf_counter()
 
