@@ -238,6 +238,26 @@ def future_in_frame(poses: np.ndarray, t: int, frame: np.ndarray, offset=None, d
     return np.concatenate([xy, yaw[:, None]], -1).astype(np.float32)
 
 
+def extend_to_goal(poses: np.ndarray, goal: np.ndarray, min_step: float = 0.05) -> np.ndarray:
+    """``poses`` (T, 3) world continued in a straight line to ``goal`` (2,) at the speed of the
+    last step (at least ``min_step`` m per step), heading kept.
+
+    An episode ends as soon as the robot is within the goal tolerance, so without this the
+    futures of the last states would stop that far short of the goal, and a planner trained on
+    them stops short too and never arrives."""
+    poses = np.asarray(poses, np.float64)
+    if len(poses) < 2:
+        return poses
+    d = np.asarray(goal, np.float64)[:2] - poses[-1, :2]
+    step = max(float(np.linalg.norm(poses[-1, :2] - poses[-2, :2])), min_step)
+    n = int(np.ceil(np.linalg.norm(d) / step))
+    if n == 0:
+        return poses
+    f = np.arange(1, n + 1)[:, None] / n
+    tail = np.concatenate([poses[-1, :2] + f * d, np.full((n, 1), poses[-1, 2])], -1)
+    return np.concatenate([poses, tail])
+
+
 def action_of(traj) -> int:
     """Index into :data:`ACTIONS` of a robot-frame trajectory (HORIZON, >= 2) (metres, rad):
     ``yield`` if it advances < 0.6 m over the horizon, ``turn_*`` if it ends turned > 0.7 rad,
@@ -412,6 +432,19 @@ def action_from_text(text: str) -> int:
         if best >= 0:
             return best
     return -1
+
+
+def with_action(long: str, action: int) -> str | None:
+    """T_l with its navigation-action phrase replaced by a phrase of ``action`` (index into
+    :data:`ACTIONS`), the rest of the description kept: the counterfactual captions that teach
+    the TSM to select by E_T. None when ``long`` holds no template action phrase (free text from
+    a real VLM), because its action cannot be rewritten reliably."""
+    target = ACTION_PHRASES[ACTIONS[int(action)]]
+    for phrases in ACTION_PHRASES.values():
+        for v, phrase in enumerate(phrases):
+            if phrase in long:
+                return long.replace(phrase, target[v])
+    return None
 
 
 CAPTION_PROMPT = ("You are guiding a mobile robot among people. Describe this first-person image for the robot. "
@@ -625,7 +658,8 @@ def samples_from_episode(scn, res, *, every: int = 4, augment: int = 1, rng: np.
     """Samples along one expert episode ``res`` (:class:`~splatsearch.social.runner.EpisodeResult`)
     of scenario ``scn``: every ``every`` steps, the expert state plus ``augment`` displaced
     copies (lateral shift up to ``max_lateral`` m, yaw up to ``max_yaw`` rad; refused if the
-    displaced robot would be within 0.3 m of a wall)."""
+    displaced robot would be within 0.3 m of a wall). When the expert reached the goal, the
+    labels continue to the goal itself (:func:`extend_to_goal`)."""
     from .scenarios import SCENARIOS
 
     rng = rng if rng is not None else np.random.default_rng(scn.seed)
@@ -637,6 +671,8 @@ def samples_from_episode(scn, res, *, every: int = 4, augment: int = 1, rng: np.
     path = scn.global_path()
     recs = []
     T = len(poses) - 1
+    # labels only: the states sampled stay those of the episode (people are known up to T)
+    label_poses = extend_to_goal(poses, scn.goal) if getattr(res, "reached", False) else poses
     for t in range(0, max(T - FUTURE_STRIDE, 1), every):
         for a in range(1 + augment):
             pose = poses[t].copy()
@@ -652,7 +688,7 @@ def samples_from_episode(scn, res, *, every: int = 4, augment: int = 1, rng: np.
             tp = max(t - PREV_STEPS, 0)
             prev = poses[tp] + np.r_[off, dyaw]
             obs = observe(scn, pose, people[t], prev, people[tp], path)
-            fut = future_in_frame(poses, t, pose, off if a else None, dyaw)
+            fut = future_in_frame(label_poses, t, pose, off if a else None, dyaw)
             act = action_of(fut)
             cs = caption_scene(scn, pose, people[t], vel[t], act)
             if isinstance(captioner, TemplateCaptioner):

@@ -2,17 +2,21 @@
 with early stopping, and the forms of Tables I and II.
 
 Stages (thesis 3.4): 1) SC-CLIP (eq 3), AdamW + cosine schedule; 2) the TPN (eq 2) on frozen E_I;
-3) the TSM (eq 7) on the TPN's plans with k* from the captions' actions. Each stage keeps the
-epoch with the lowest validation loss (early stopping with ``patience``) and writes it as a
-checkpoint (atomically) whenever it improves.
+3) the TSM (eq 7) on the TPN's plans with k* from the captions' actions, plus counterfactual
+captions (:func:`tsm_rows`). Each stage keeps the epoch with the lowest validation loss (early
+stopping with ``patience``) and writes it as a checkpoint (atomically) whenever it improves.
+Every jitted function sees one shape per stage (training batches drop the remainder,
+validation is one batch or equal chunks, batched inference pads its last chunk), so each
+compiles once: on 2 CPU cores compilation is a large part of a run.
 
 Checkpoints are ``.npz`` files: one array per parameter leaf (``<net>/<path>``), the text database
 D_T, and a JSON header (``__meta__``) holding the format name, the configurations and a SHA-256
 digest over every array's name, dtype, shape and bytes. :func:`load_checkpoint` rejects a file
 that is truncated, is not an npz, has the wrong format, or whose digest does not match.
 
-Learning rates differ from the thesis (1e-4 / 8e-4 / 1e-5 over 100-500 epochs on an H100) because
-a default run here must finish in minutes on 2 CPU cores; they are in :class:`TrainConfig`.
+Learning rates and epochs differ from the thesis (1e-4 / 8e-4 / 1e-5 over 100-500 epochs on an
+H100) because a default run here must finish within 15 minutes on 2 CPU cores; they are in
+:class:`TrainConfig`.
 """
 
 from __future__ import annotations
@@ -42,9 +46,18 @@ from .olivia import (
     VARIANTS,
     OliviaConfig,
     OliviaNav,
+    retrieve,
     run_olivia_episode,
 )
-from .olivia_data import LONG_LEN, SHORT_LEN, Samples, TemplateCaptioner, build_dataset
+from .olivia_data import (
+    LONG_LEN,
+    SHORT_LEN,
+    Samples,
+    TemplateCaptioner,
+    action_of,
+    build_dataset,
+    with_action,
+)
 from .scenarios import THESIS_SCENARIOS, make_scenario
 from .tokenizer import DEFAULT_TOKENIZER
 
@@ -147,7 +160,7 @@ def load_planner(path: str, variant: str = "olivia") -> OliviaNav:
 
 def config_to_meta(cfg: OliviaConfig) -> dict:
     return {"clip": dataclasses.asdict(cfg.clip), "tpn": dataclasses.asdict(cfg.tpn), "tsm": dataclasses.asdict(cfg.tsm),
-            "replan_every": cfg.replan_every}
+            "replan_every": cfg.replan_every, "retrieve_k": cfg.retrieve_k, "retrieve_tau": cfg.retrieve_tau}
 
 
 def config_from_meta(meta: dict) -> OliviaConfig:
@@ -157,7 +170,8 @@ def config_from_meta(meta: dict) -> OliviaConfig:
     t = dict(c["tpn"])
     t["channels"] = tuple(t["channels"])
     return OliviaConfig(sc_clip.SCCLIPConfig(**c["clip"]), tpn.TPNConfig(**t), tsm.TSMConfig(**c["tsm"]),
-                        replan_every=int(c.get("replan_every", 2)))
+                        replan_every=int(c.get("replan_every", 2)), retrieve_k=int(c.get("retrieve_k", 1)),
+                        retrieve_tau=float(c.get("retrieve_tau", 0.05)))
 
 
 # -- training loop --------------------------------------------------------------------------------
@@ -240,6 +254,17 @@ def batches(arrays: dict, batch: int, rng: np.random.Generator | None, drop_last
     return out
 
 
+def val_batches(arrays: dict, max_rows: int) -> list[dict]:
+    """Validation batches of one shape (one compilation of the validation loss): all rows in
+    one batch when there are at most ``max_rows``, else equal chunks, the last one completed
+    with rows from the start (a negligible bias of a few repeated rows)."""
+    n = len(next(iter(arrays.values())))
+    c = max(-(-n // max_rows), 1)
+    size = -(-n // c)
+    idx = np.arange(c * size) % max(n, 1)
+    return [{k: jnp.asarray(np.asarray(v)[idx[i * size:(i + 1) * size]]) for k, v in arrays.items()} for i in range(c)]
+
+
 # -- the pipeline ---------------------------------------------------------------------------------
 
 @dataclass
@@ -252,11 +277,11 @@ class TrainConfig:
     val_seeds: tuple = (50,)
     every: int = 5
     augment: int = 1
-    clip_epochs: int = 25
+    clip_epochs: int = 16
     clip_batch: int = 128
     clip_lr: float = 1e-3
     clip_wd: float = 0.01
-    tpn_epochs: int = 25
+    tpn_epochs: int = 15
     tpn_batch: int = 32
     tpn_lr: float = 8e-4
     tpn_wd: float = 1e-4
@@ -264,6 +289,7 @@ class TrainConfig:
     tsm_batch: int = 128
     tsm_lr: float = 1e-3
     tsm_wd: float = 1e-5
+    tsm_counterfactual: bool = True
     patience: int = 5
     db_size: int = 1000
     seed: int = 0
@@ -275,28 +301,77 @@ def _text_arrays(s: Samples):
     return {"image": s.image, "long_ids": li, "long_mask": lm, "short_ids": si, "short_mask": sm}
 
 
+def map_rows(f: Callable, arrays: Sequence[np.ndarray], batch: int) -> np.ndarray:
+    """``f(*chunks)`` over ``batch`` rows at a time, concatenated (host array). ``f`` must treat
+    rows independently: the last chunk is padded to ``batch`` rows (and the padding dropped), so
+    that a jitted ``f`` compiles for one shape only."""
+    n = len(arrays[0])
+    out = []
+    for s in range(0, n, batch):
+        chunk = [a[s:s + batch] for a in arrays]
+        m = len(chunk[0])
+        if m < batch:
+            chunk = [np.concatenate([c, np.repeat(c[:1], batch - m, 0)]) for c in chunk]
+        out.append(np.asarray(f(*map(jnp.asarray, chunk)))[:m])
+    return np.concatenate(out)
+
+
+# module level, so that every call with the same config and shapes reuses one compilation
+_encode_images = jax.jit(sc_clip.encode_images, static_argnames="cfg")
+_encode_texts = jax.jit(sc_clip.encode_texts, static_argnames="cfg")
+_predict = jax.jit(lambda p, e, pt, v, g, cfg: tpn.predict(p, e, pt, v, g, True, True, cfg), static_argnames="cfg")
+
+
 def encode_all_images(params, images: np.ndarray, cfg: sc_clip.SCCLIPConfig, batch: int = 256) -> np.ndarray:
-    f = jax.jit(lambda p, x: sc_clip.encode_images(p, x, cfg))
-    return np.concatenate([np.asarray(f(params, jnp.asarray(images[s:s + batch])))
-                           for s in range(0, len(images), batch)]).astype(np.float32)
+    """(N, D) unit E_I of images (N, H, W, 3)."""
+    return map_rows(lambda x: _encode_images(params, x, cfg=cfg), [images], batch).astype(np.float32)
 
 
 def encode_all_texts(params, texts: list, cfg: sc_clip.SCCLIPConfig, batch: int = 256) -> np.ndarray:
+    """(N, D) unit E_T of long captions."""
     ids, mask = DEFAULT_TOKENIZER.encode_batch(texts, LONG_LEN)
-    f = jax.jit(lambda p, i, m: sc_clip.encode_texts(p, i, m, cfg))
-    return np.concatenate([np.asarray(f(params, jnp.asarray(ids[s:s + batch]), jnp.asarray(mask[s:s + batch])))
-                           for s in range(0, len(texts), batch)]).astype(np.float32)
+    return map_rows(lambda i, m: _encode_texts(params, i, m, cfg=cfg), [ids, mask], batch).astype(np.float32)
 
 
 def predict_all(tpn_params, e_img, s: Samples, cfg: tpn.TPNConfig, batch: int = 128) -> np.ndarray:
-    f = jax.jit(lambda p, e, pt, v, g: tpn.predict(p, e, pt, v, g, True, True, cfg))
-    return np.concatenate([np.asarray(f(tpn_params, jnp.asarray(e_img[i:i + batch]), jnp.asarray(s.points[i:i + batch]),
-                                        jnp.asarray(s.points_valid[i:i + batch]), jnp.asarray(s.goal[i:i + batch])))
-                           for i in range(0, len(s), batch)])
+    """τ^P (N, K, horizon, 3) of every sample, all modalities on."""
+    return map_rows(lambda e, pt, v, g: _predict(tpn_params, e, pt, v, g, cfg=cfg),
+                    [e_img, s.points, s.points_valid, s.goal], batch)
 
 
 def k_stars(trajs: np.ndarray, s: Samples) -> np.ndarray:
+    """(N,) k* of each sample: the plan performing its caption's action closest to its expert future."""
     return np.asarray([tsm.best_index(trajs[i], s.future[i], int(s.action[i])) for i in range(len(s))], np.int32)
+
+
+def tsm_rows(trajs: np.ndarray, s: Samples, counterfactual: bool = True) -> tuple[list, np.ndarray, np.ndarray,
+                                                                                  np.ndarray]:
+    """D_TSM (eq 7) from the TPN's plans ``trajs`` (N, K, horizon, 3) of the samples ``s``.
+
+    Each sample gives its own long caption with its k*. With ``counterfactual``, each other action
+    that one of its K plans performs gives one more row: the caption rewritten to that action
+    (:func:`~splatsearch.social.olivia_data.with_action`) and k* the plan that performs it closest
+    to the expert. Without them the expert's action is nearly always that of the plan closest to
+    the expert, which the plans alone reveal, and the TSM learns to ignore E_T.
+
+    Returns (captions, sample index of each row, k*, factual) with one entry per row."""
+    caps, idx, ks, fact = [], [], [], []
+    for i in range(len(s)):
+        caps.append(s.long[i])
+        idx.append(i)
+        ks.append(tsm.best_index(trajs[i], s.future[i], int(s.action[i])))
+        fact.append(True)
+        if not counterfactual:
+            continue
+        for a in sorted({action_of(t) for t in trajs[i]} - {int(s.action[i])}):
+            cap = with_action(s.long[i], a)
+            if cap is None:
+                continue
+            caps.append(cap)
+            idx.append(i)
+            ks.append(tsm.best_index(trajs[i], s.future[i], a))
+            fact.append(False)
+    return caps, np.asarray(idx, np.int64), np.asarray(ks, np.int32), np.asarray(fact, bool)
 
 
 def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfig = OliviaConfig(),
@@ -347,7 +422,7 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
     tr_a, va_a = _text_arrays(train), _text_arrays(val)
     tid = task("SC-CLIP (eq 3)", tc.clip_epochs)
     r1 = fit(lambda p, b, k: sc_clip.make_loss_fn(cfg.clip)(p, b), sc_clip.init_sc_clip(k1, cfg.clip),
-             lambda rng: batches(tr_a, tc.clip_batch, rng), batches(va_a, tc.clip_batch, None, drop_last=False),
+             lambda rng: batches(tr_a, tc.clip_batch, rng), val_batches(va_a, 512),
              lr=tc.clip_lr, weight_decay=tc.clip_wd, epochs=tc.clip_epochs, patience=tc.patience, seed=tc.seed,
              schedule="cosine",
              on_epoch=lambda e, a, b: advance(tid, completed=e + 1, description=f"SC-CLIP train {a:.3f} val {b:.3f}"),
@@ -365,7 +440,7 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
              "future": val.future}
     tid = task("TPN (eq 2, WTA)", tc.tpn_epochs)
     r2 = fit(tpn.make_loss_fn(cfg.tpn), tpn.init_tpn(k2, cfg.tpn), lambda rng: batches(tp_tr, tc.tpn_batch, rng),
-             batches(tp_va, 128, None, drop_last=False), lr=tc.tpn_lr, weight_decay=tc.tpn_wd, epochs=tc.tpn_epochs,
+             val_batches(tp_va, 512), lr=tc.tpn_lr, weight_decay=tc.tpn_wd, epochs=tc.tpn_epochs,
              patience=tc.patience, seed=tc.seed + 1, schedule="cosine",
              on_epoch=lambda e, a, b: advance(tid, completed=e + 1, description=f"TPN train {a:.4f} val {b:.4f}"),
              on_improve=lambda p, e: save_checkpoint(os.path.join(out_dir, "tpn.npz"), {"tpn": p}, meta=meta))
@@ -375,21 +450,20 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
 
     # stage 3: TSM on the TPN's plans ------------------------------------------------------------
     traj_tr, traj_va = predict_all(tpn_p, e_tr, train, cfg.tpn), predict_all(tpn_p, e_va, val, cfg.tpn)
-    ks_tr, ks_va = k_stars(traj_tr, train), k_stars(traj_va, val)
-    ts_tr = {"e_text": encode_all_texts(clip_p, train.long, cfg.clip), "trajs": traj_tr, "k_star": ks_tr}
-    ts_va = {"e_text": encode_all_texts(clip_p, val.long, cfg.clip), "trajs": traj_va, "k_star": ks_va}
+
+    def tsm_arrays(trajs, s):
+        caps, idx, ks, fact = tsm_rows(trajs, s, tc.tsm_counterfactual)
+        return {"e_text": encode_all_texts(clip_p, caps, cfg.clip), "trajs": trajs[idx], "k_star": ks,
+                "factual": fact}
+
+    ts_tr, ts_va = tsm_arrays(traj_tr, train), tsm_arrays(traj_va, val)
     tid = task("TSM (eq 7)", tc.tsm_epochs)
     r3 = fit(tsm.make_loss_fn(cfg.tsm), tsm.init_tsm(k3, cfg.tsm), lambda rng: batches(ts_tr, tc.tsm_batch, rng),
-             batches(ts_va, 256, None, drop_last=False), lr=tc.tsm_lr, weight_decay=tc.tsm_wd, epochs=tc.tsm_epochs,
+             val_batches(ts_va, 1024), lr=tc.tsm_lr, weight_decay=tc.tsm_wd, epochs=tc.tsm_epochs,
              patience=tc.patience, seed=tc.seed + 2,
              on_epoch=lambda e, a, b: advance(tid, completed=e + 1, description=f"TSM train {a:.3f} val {b:.3f}"),
              on_improve=lambda p, e: save_checkpoint(os.path.join(out_dir, "tsm.npz"), {"tsm": p}, meta=meta))
     tsm_p = r3.params
-    logits = tsm.TSM(cfg.tsm).apply({"params": tsm_p}, jnp.asarray(ts_va["e_text"]), jnp.asarray(traj_va),
-                                    jnp.ones(len(val), bool))
-    acc = float(np.mean(np.asarray(jnp.argmax(logits, -1)) == ks_va))
-    summary["tsm"] = _stage_summary(r3) | {"val_accuracy": acc}
-    log(f"TSM: val CE {min(r3.val):.3f}, selection accuracy {acc:.2f} ({r3.seconds:.0f} s)")
 
     # D_T: a random subset of the training long captions ----------------------------------------
     rng = np.random.default_rng(tc.seed)
@@ -398,12 +472,46 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
     db = build_text_db(clip_p, caps, cfg.clip)
     params = {"clip": clip_p, "tpn": tpn_p, "tsm": tsm_p}
     save_checkpoint(os.path.join(out_dir, "olivia.npz"), params, db=db, meta=meta)
+    summary["tsm"] = _stage_summary(r3) | tsm_diagnostics(tsm_p, ts_va, e_va, val.action, db, cfg)
+    d = summary["tsm"]
+    log(f"TSM: val CE {min(r3.val):.3f}; selection accuracy {d['acc_caption']:.2f} with the true caption, "
+        f"{d['acc_retrieved']:.2f} with the retrieved one, {d['acc_no_text']:.2f} without E_T, "
+        f"{d['acc_counterfactual']:.2f} on rewritten captions; retrieved action right {d['retrieval_action']:.2f} "
+        f"({r3.seconds:.0f} s)")
     summary["db_size"] = len(db.captions)
     summary["seconds"] = time.perf_counter() - t_start
     with open(os.path.join(out_dir, "train_summary.json"), "w", encoding="utf-8") as f:
         json.dump(summary, f, indent=1)
     log(f"wrote {os.path.join(out_dir, 'olivia.npz')} (total {summary['seconds']:.0f} s)")
     return summary
+
+
+def tsm_diagnostics(tsm_p, rows: dict, e_img: np.ndarray, actions: np.ndarray, db: TextDB,
+                    cfg: OliviaConfig) -> dict:
+    """How the TSM selects on validation rows (from :func:`tsm_rows`; the factual ones come
+    first per sample, in sample order): accuracy against k* with the sample's own caption, with
+    the caption D_T retrieves for its image (what the planner gets, :func:`retrieve`), without
+    E_T, and on the rewritten captions; and how often the retrieved caption's action is the
+    sample's."""
+    fact = np.asarray(rows["factual"])
+    trajs, ks = np.asarray(rows["trajs"]), np.asarray(rows["k_star"])
+    f = jax.jit(lambda e, t, u: tsm.TSM(cfg.tsm).apply({"params": tsm_p}, e, t, u))
+
+    def acc(e_text, tr, k, use):
+        sel = np.concatenate([np.asarray(jnp.argmax(f(jnp.asarray(e_text[i:i + 512]), jnp.asarray(tr[i:i + 512]),
+                                                      jnp.full(len(tr[i:i + 512]), use)), -1))
+                              for i in range(0, len(tr), 512)]) if len(tr) else np.zeros(0, int)
+        return float(np.mean(sel == k)) if len(k) else float("nan")
+
+    ret = jax.jit(jax.vmap(lambda e: retrieve(jnp.asarray(db.embeddings), jnp.asarray(db.actions, jnp.int32), e,
+                                              cfg.retrieve_k, cfg.retrieve_tau)[0]))
+    j = np.asarray(ret(jnp.asarray(e_img, jnp.float32)))
+    e_ret = db.embeddings[j]
+    return {"acc_caption": acc(rows["e_text"][fact], trajs[fact], ks[fact], True),
+            "acc_retrieved": acc(e_ret, trajs[fact], ks[fact], True),
+            "acc_no_text": acc(rows["e_text"][fact], trajs[fact], ks[fact], False),
+            "acc_counterfactual": acc(rows["e_text"][~fact], trajs[~fact], ks[~fact], True),
+            "retrieval_action": float(np.mean(np.asarray(db.actions)[j] == np.asarray(actions)))}
 
 
 def _stage_summary(r: StageResult) -> dict:
@@ -439,7 +547,7 @@ def run_baseline(scn, kind: str):
     return run_episode(scn, kind)
 
 
-def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = (1000, 1001),
+def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = (1000, 1001, 1002, 1003, 1004),
               baselines: Sequence[str] = ("dwa", "convoi"), variants: Sequence[str] = ("olivia",),
               log: Callable[[str], None] = print, progress=None) -> list[dict]:
     """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``."""
@@ -463,14 +571,34 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
     return rows
 
 
-def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = (500, 501),
+def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], size: int,
+                buffer_every: int = 2) -> tuple[LLUBuffer, list[int]]:
+    """The LLU buffer B filled to |B| = ``size`` images while OLiVia-Nav drives the adaptation
+    episodes of ``scenario``, one seed after the other until B is full (every ``buffer_every``-th
+    plan stores its view). Returns B and the seeds driven. Raises RuntimeError when the episodes
+    end before B is full: the update is defined on a full buffer."""
+    buf = LLUBuffer(size)
+    used: list[int] = []
+    for seed in adapt_seeds:
+        if buf.full:
+            break
+        run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=buffer_every)
+        used.append(int(seed))
+    if not buf.full:
+        raise RuntimeError(f"the LLU buffer holds {len(buf.images)} of |B| = {size} images after the adaptation "
+                           f"episodes {tuple(adapt_seeds)}: give more adaptation seeds or a smaller buffer_every")
+    return buf, used
+
+
+def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = (500, 501, 502, 503),
               test_seeds: Sequence[int] = (1000, 1001, 1002), llu: LLUConfig = LLUConfig(),
               train_captions: Sequence[str] | None = None, log: Callable[[str], None] = print,
-              progress=None) -> tuple[list[dict], OliviaNav, dict]:
+              progress=None, buffer_every: int = 2) -> tuple[list[dict], OliviaNav, dict]:
     """Table II form on a scenario held out of training: every variant before and after one LLU
     update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
-    ``adapt_seeds`` episodes; its images are captioned by the template captioner (the offline
-    stand-in for the VLM); D_T is rebuilt from its offline captions plus the new ones."""
+    ``adapt_seeds`` episodes, as many as it takes (:func:`fill_buffer`); its images are captioned
+    by the template captioner (the offline stand-in for the VLM); D_T is rebuilt from its
+    offline captions plus the new ones."""
     def evaluate(p: OliviaNav) -> dict:
         out = {}
         for seed in test_seeds:
@@ -484,13 +612,7 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
     before = evaluate(planner)
-    buf = LLUBuffer(llu.size)
-    for seed in adapt_seeds:
-        if buf.full:
-            break
-        run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=2)
-    if len(buf.images) < 2:
-        raise RuntimeError("the LLU buffer collected fewer than 2 images")
+    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every)
     cap = TemplateCaptioner()
     captions = [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
     imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
@@ -503,7 +625,7 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
     after = evaluate(after_planner)
     rows = [{"method": VARIANT_LABELS[v], "mse_before": before[v]["mse"], "haus_before": before[v]["haus"],
              "mse_after": after[v]["mse"], "haus_after": after[v]["haus"]} for v in VARIANTS]
-    return rows, after_planner, {"llu_losses": losses, "buffer": len(buf.images)}
+    return rows, after_planner, {"llu_losses": losses, "buffer": len(buf.images), "adapt_seeds": used}
 
 
 def format_table_one(rows: list[dict]) -> str:

@@ -4,6 +4,12 @@ E_T (D,) goes through an FFN to E_τ; each of the K planned trajectories (horizo
 through a per-pose FFN and a GRU to E_C; a final FFN scores ``E_C ⊕ E_τ`` per trajectory, and
 eq 7 is the cross-entropy of those K scores against k*, the index of the trajectory that the
 caption's navigation action describes (:func:`best_index`).
+
+For the selection to depend on E_T, D_TSM also holds counterfactual rows (the same plans with the
+caption rewritten to another action that one of them performs, and k* that plan; see
+:func:`splatsearch.social.olivia_train.tsm_rows`): with the real captions alone, the expert's
+action is nearly always that of the plan closest to the expert, which the plans reveal by
+themselves, and a TSM trained on them scores the plans the same with or without E_T.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ class TSMConfig:
     """embed: D of E_T; width: E_τ and E_C size; K, horizon: the TPN's output shape."""
 
     embed: int = 64
-    width: int = 128
+    width: int = 64  # ample for ranking K plans by an action; 128 cost 4x the GRU time for nothing measurable
     K: int = 5
     horizon: int = HORIZON
 
@@ -59,14 +65,18 @@ def tsm_loss(logits, k_star):
 
 
 def make_loss_fn(cfg: TSMConfig = TSMConfig(), p_drop_text: float = 0.15):
-    """``loss(params, batch, key)`` for batches ``{e_text, trajs, k_star}``; E_T is dropped per
-    sample with ``p_drop_text`` (so the w/o E_T ablation is a network that has seen it missing)."""
+    """``loss(params, batch, key)`` for batches ``{e_text, trajs, k_star}`` and optionally
+    ``factual`` (B,) bool. E_T is dropped per sample with ``p_drop_text`` (so the w/o E_T ablation
+    is a network that has seen it missing), but only from factual rows: a counterfactual row's
+    k* follows its rewritten caption, so without E_T its target would be noise."""
     model = TSM(cfg)
 
     def loss(params, batch, key):
         B = batch["k_star"].shape[0]
-        use = jax.random.uniform(key, (B,)) >= p_drop_text
-        return tsm_loss(model.apply({"params": params}, batch["e_text"], batch["trajs"], use), batch["k_star"])
+        drop = jax.random.uniform(key, (B,)) < p_drop_text
+        if "factual" in batch:
+            drop = drop & batch["factual"]
+        return tsm_loss(model.apply({"params": params}, batch["e_text"], batch["trajs"], ~drop), batch["k_star"])
 
     return loss
 

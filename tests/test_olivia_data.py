@@ -165,3 +165,41 @@ def test_samples_from_a_short_episode(hallway):
     assert s.future[0, 0, 0] == pytest.approx(0.05 * od.FUTURE_STRIDE, abs=1e-4)
     sub = s.subset([0, 1])
     assert len(sub) == 2 and sub.long == s.long[:2]
+
+
+def test_with_action_rewrites_only_the_action():
+    scene = od.CaptionScene("a corridor", "d", 0, np.array([[2.0, 0.5]]), np.array([[-1.0, 0.0]]),
+                            np.array([2]), np.array([-1]), (1.2, 1.3, 9.0), od.ACTIONS.index("straight"))
+    for v in (0, 1):
+        c = od.TemplateCaptioner().caption(None, scene, variant=v).long
+        for a in range(len(od.ACTIONS)):
+            c2 = od.with_action(c, a)
+            assert od.action_from_text(c2) == a
+            # the description before the action is untouched
+            assert c2.split("you should")[0] == c.split("you should")[0]
+    assert od.with_action("A busy hall. The robot should wait.", 0) is None
+
+
+def test_extend_to_goal_continues_the_labels():
+    poses = np.stack([np.arange(20) * 0.1, np.zeros(20), np.full(20, 0.1)], -1)
+    goal = np.array([2.15, 0.0])
+    ext = od.extend_to_goal(poses, goal)
+    np.testing.assert_array_equal(ext[:20], poses)
+    np.testing.assert_allclose(ext[-1, :2], goal)
+    assert np.all(np.linalg.norm(np.diff(ext[19:, :2], axis=0), axis=1) <= 0.1 + 1e-9)
+    assert np.all(ext[20:, 2] == 0.1)  # heading kept
+    np.testing.assert_array_equal(od.extend_to_goal(poses, poses[-1, :2]), poses)
+
+
+def test_labels_of_a_reached_episode_end_at_the_goal(hallway):
+    from types import SimpleNamespace
+
+    # the record stops 0.3 m short of the goal, as a reached episode does (goal tolerance)
+    x_end = float(hallway.goal[0]) - 0.3
+    robot = np.stack([np.linspace(x_end - 1.5, x_end, 16), np.zeros(16), np.zeros(16)], -1).astype(np.float32)
+    people = np.repeat(np.asarray(hallway.peds.pos)[None], 16, 0)
+    for reached, end in ((False, x_end), (True, float(hallway.goal[0]))):
+        res = SimpleNamespace(robot=robot, people=people, dt=0.1, reached=reached)
+        s = od.samples_from_episode(hallway, res, every=10, augment=0, rng=np.random.default_rng(0))
+        last = s.future[-1, -1, 0] + robot[s.t[-1], 0]  # robot frame = world shifted (yaw 0)
+        assert last == pytest.approx(end, abs=1e-3)

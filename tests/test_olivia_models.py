@@ -239,3 +239,36 @@ def test_best_index_follows_the_caption_action():
     assert tsm.best_index(trajs, expert, ACTIONS.index("yield")) == 2
     # no trajectory turns left: fall back to the closest
     assert tsm.best_index(trajs, expert, ACTIONS.index("turn_left")) == 0
+
+
+def test_tsm_loss_never_drops_text_from_counterfactual_rows():
+    cfg = tsm.TSMConfig(embed=16, width=32, K=3)
+    p = tsm.init_tsm(jax.random.PRNGKey(3), cfg)
+    rng = np.random.default_rng(3)
+    batch = {"e_text": jnp.asarray(rng.normal(size=(4, 16)), F32),
+             "trajs": jnp.asarray(rng.normal(size=(4, 3, HORIZON, 3)), F32), "k_star": jnp.asarray([0, 1, 2, 1])}
+    apply = jax.jit(lambda u: tsm.TSM(cfg).apply({"params": p}, batch["e_text"], batch["trajs"], u))
+    with_text, without = apply(jnp.ones(4, bool)), apply(jnp.zeros(4, bool))
+    loss = jax.jit(tsm.make_loss_fn(cfg, p_drop_text=1.0))  # drop E_T wherever it may be dropped
+    fact = jnp.asarray([True, False, True, False])
+    got = float(loss(p, batch | {"factual": fact}, jax.random.PRNGKey(0)))
+    logits = np.where(np.asarray(fact)[:, None], np.asarray(without), np.asarray(with_text))
+    assert got == pytest.approx(float(tsm.tsm_loss(jnp.asarray(logits), batch["k_star"])), rel=1e-5)
+    # with every row factual, every row loses E_T
+    assert float(loss(p, batch | {"factual": jnp.ones(4, bool)}, jax.random.PRNGKey(0))) == pytest.approx(
+        float(tsm.tsm_loss(without, batch["k_star"])), rel=1e-5)
+
+
+def test_retrieve_votes_on_the_action():
+    from splatsearch.social.olivia import N_VOTES, retrieve
+
+    # the nearest caption says "yield" (5), but the next three neighbours say "keep_left" (2)
+    emb = np.array([[1.0, 0.0], [0.99, 0.14], [0.98, 0.2], [0.97, 0.24], [0.0, 1.0]], np.float32)
+    emb /= np.linalg.norm(emb, axis=1, keepdims=True)
+    db, acts = jnp.asarray(emb), jnp.asarray([5, 2, 2, 2, 0], jnp.int32)
+    e = jnp.asarray([1.0, 0.0], F32)
+    j, votes = retrieve(db, acts, e, 1, 0.05)
+    assert int(j) == 0 and votes.shape == (N_VOTES,)
+    j, votes = retrieve(db, acts, e, 4, 0.05)
+    assert int(j) == 1 and int(jnp.argmax(votes)) == 2  # the most similar keep_left caption
+    assert float(votes.sum()) == pytest.approx(1.0, rel=1e-5)

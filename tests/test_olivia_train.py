@@ -165,3 +165,133 @@ def test_closed_loop_episode_with_untrained_networks():
     assert res.plan_ms > 0
     with pytest.raises(ValueError):
         OliviaNav(params, db, cfg, variant="nope")
+
+
+def _plans():
+    t = np.linspace(0.1, 1.0, 10)
+    z = 0 * t
+    straight = np.stack([2.4 * t, z, z], -1)
+    left = np.stack([2.2 * t, 0.6 * t, z], -1)
+    right = np.stack([2.2 * t, -0.6 * t, z], -1)
+    return np.stack([straight, left, right]).astype(np.float32)
+
+
+def test_tsm_rows_add_counterfactual_captions():
+    from splatsearch.social.olivia_data import (
+        ACTIONS,
+        CaptionScene,
+        TemplateCaptioner,
+        action_from_text,
+    )
+
+    scene = CaptionScene("a corridor", "d", 0, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int),
+                         np.zeros(0, int), (1.2, 1.3, 9.0), ACTIONS.index("straight"))
+    caption = TemplateCaptioner().caption(None, scene).long
+    plans = _plans()
+    s = _Rows([caption, "free text from a VLM: keep right"], plans[[0, 2]],
+              np.array([ACTIONS.index("straight"), ACTIONS.index("keep_right")]))
+    caps, idx, ks, fact = ot.tsm_rows(np.stack([plans, plans]), s)
+    # sample 0: its own caption, then one rewritten caption per other action its plans perform;
+    # sample 1 (free text) cannot be rewritten
+    assert idx.tolist() == [0, 0, 0, 1] and fact.tolist() == [True, False, False, True]
+    expected = [ACTIONS.index(a) for a in ("straight", "keep_right", "keep_left")]
+    assert [action_from_text(c) for c in caps[:3]] == expected
+    assert ks.tolist() == [0, 2, 1, 2]  # the plan performing each caption's action
+    caps, idx, ks, fact = ot.tsm_rows(np.stack([plans, plans]), s, counterfactual=False)
+    assert fact.all() and idx.tolist() == [0, 1]
+
+
+class _Rows:
+    """The fields of Samples that tsm_rows reads."""
+
+    def __init__(self, long, future, action):
+        self.long, self.future, self.action = long, future, action
+
+    def __len__(self):
+        return len(self.long)
+
+
+def test_map_rows_pads_to_one_shape_and_val_batches():
+    shapes = []
+
+    def f(x):
+        shapes.append(x.shape)
+        return x * 2
+
+    out = ot.map_rows(f, [np.arange(10.0)], 4)
+    np.testing.assert_array_equal(out, np.arange(10.0) * 2)
+    assert set(shapes) == {(4,)}
+    vb = ot.val_batches({"x": np.arange(1100)}, 512)
+    assert [len(b["x"]) for b in vb] == [367] * 3
+    assert set(np.concatenate([np.asarray(b["x"]) for b in vb]).tolist()) == set(range(1100))
+    assert [len(b["x"]) for b in ot.val_batches({"x": np.arange(300)}, 512)] == [300]
+
+
+def test_cli_defaults_match_train_config():
+    from splatsearch.social.olivia_cli import register_olivia
+
+    parser = argparse.ArgumentParser()
+    register_olivia(parser.add_subparsers(dest="cmd"))
+    a = parser.parse_args(["train"])
+    tc = ot.TrainConfig()
+    for name in ("clip_epochs", "tpn_epochs", "tsm_epochs", "patience", "every", "augment"):
+        assert getattr(a, name) == getattr(tc, name), name
+    assert a.train_seeds == tc.train_seeds and a.val_seeds == tc.val_seeds
+
+
+def test_fill_buffer_drives_episodes_until_full(monkeypatch):
+    driven = []
+
+    def fake_episode(scn, planner, *, buffer, buffer_every):
+        driven.append(scn.seed)
+        for _ in range(22):  # a short episode stores fewer views than |B|
+            buffer.add(np.zeros((IMG_H, IMG_W, 3), np.float32))
+
+    monkeypatch.setattr(ot, "run_olivia_episode", fake_episode)
+    buf, used = ot.fill_buffer(None, "doorway", (500, 501, 502, 503), 50)
+    assert buf.full and len(buf.images) == 50 and used == [500, 501, 502] and driven == used
+    with pytest.raises(RuntimeError, match="22 of"):
+        ot.fill_buffer(None, "doorway", (500,), 50)
+
+
+@pytest.mark.slow  # two small TSM trainings (XLA compilation dominates)
+def test_counterfactual_rows_make_the_tsm_select_by_the_caption():
+    from splatsearch.social import tsm
+    from splatsearch.social.olivia_data import (
+        ACTIONS,
+        CaptionScene,
+        TemplateCaptioner,
+        action_from_text,
+    )
+
+    rng = np.random.default_rng(0)
+    plans = _plans()
+    n = 48
+    order = np.stack([rng.permutation(3) for _ in range(n)])  # the heads come in any order
+    trajs = plans[order] + rng.normal(0, 0.02, (n, 3, 10, 3)).astype(np.float32)
+    scene = CaptionScene("a corridor", "d", 0, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int),
+                         np.zeros(0, int), (1.2, 1.3, 9.0), ACTIONS.index("straight"))
+    caption = TemplateCaptioner().caption(None, scene).long
+    # the expert always drives straight, so every real caption says "straight"
+    s = _Rows([caption] * n, plans[np.zeros(n, int)], np.full(n, ACTIONS.index("straight")))
+    codes = np.eye(len(ACTIONS), 16, dtype=np.float32)  # a stand-in F_T that encodes the action
+
+    def train(counterfactual):
+        caps, idx, ks, fact = ot.tsm_rows(trajs, s, counterfactual)
+        rows = {"e_text": codes[[action_from_text(c) for c in caps]], "trajs": trajs[idx], "k_star": ks,
+                "factual": fact}
+        cfg = tsm.TSMConfig(embed=16, width=32, K=3)
+        r = ot.fit(tsm.make_loss_fn(cfg), tsm.init_tsm(jax.random.PRNGKey(0), cfg),
+                   lambda g: ot.batches(rows, 32, g), ot.val_batches(rows, 512), lr=3e-3, weight_decay=0.0,
+                   epochs=40, patience=40)
+        return jax.jit(lambda e, t: tsm.TSM(cfg).apply({"params": r.params}, e, t, jnp.ones(len(t), bool)))
+
+    left = codes[np.full(n, ACTIONS.index("keep_left"))]
+    want = np.argmax(order == 1, 1)  # where the left plan is
+    f = train(True)
+    assert np.mean(np.argmax(np.asarray(f(jnp.asarray(left), jnp.asarray(trajs))), 1) == want) > 0.9
+    assert np.mean(np.argmax(np.asarray(f(jnp.asarray(codes[np.zeros(n, int)]), jnp.asarray(trajs))), 1)
+                   == np.argmax(order == 0, 1)) > 0.9
+    # trained on the real captions alone, it picks the straight plan whatever the caption says
+    g = train(False)
+    assert np.mean(np.argmax(np.asarray(g(jnp.asarray(left), jnp.asarray(trajs))), 1) == want) < 0.2
