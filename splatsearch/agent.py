@@ -299,8 +299,8 @@ class SplatSearchAgent:
             return None
         cands = hemisphere_viewpoints(e.centroid, cfg.view_radius, 3 * cfg.n_views, cfg.view_elevations_deg)
         occ = self.explorer.occupancy
-        keep = clear_viewpoints(cands, occ.state == OCCUPIED, occ.spec.origin_xy, occ.spec.cell_size,
-                                e.centroid[:2], skip_radius=e.extent_radius, free=occ.state == FREE)
+        keep = clear_viewpoints(cands, occ.state == OCCUPIED, occ.spec, e.centroid[:2], skip_radius=e.extent_radius,
+                                free=occ.state == FREE)
         idx = np.flatnonzero(keep)
         if len(idx) < max(2, cfg.n_views // 4):
             return None

@@ -537,8 +537,10 @@ def test_nvsm_verification_ranks_the_goal_instance_first_on_real_maps(env):
 
 
 def test_clear_viewpoints_drop_cameras_behind_walls_or_over_unknown_space():
+    from splatsearch.nav.grid import GridSpec
     from splatsearch.search.novel_views import clear_viewpoints
 
+    spec = GridSpec((-5.0, -5.0), 0.1, (100, 100))
     # 10 x 10 m at 0.1 m, origin (-5, -5); a wall along x = 1 m (cols 60-61), target at the origin
     blocked = np.zeros((100, 100), bool)
     blocked[:, 60:62] = True
@@ -546,14 +548,16 @@ def test_clear_viewpoints_drop_cameras_behind_walls_or_over_unknown_space():
     free[:, :20] = False  # x < -3 m is unknown
     vms = hemisphere_viewpoints([0.0, 0.0, 0.5], 1.5, 8, (20.0,))
     eyes = np.array([-v[:3, :3].T @ v[:3, 3] for v in vms])
-    keep = clear_viewpoints(vms, blocked, (-5.0, -5.0), 0.1, (0.0, 0.0), skip_radius=0.3, free=free)
+    keep = clear_viewpoints(vms, blocked, spec, (0.0, 0.0), skip_radius=0.3, free=free)
     np.testing.assert_array_equal(keep, eyes[:, 0] < 1.0)  # cameras beyond the wall see its back
     far = hemisphere_viewpoints([-2.0, 0.0, 0.5], 1.5, 8, (20.0,))
     far_eyes = np.array([-v[:3, :3].T @ v[:3, 3] for v in far])
-    keep = clear_viewpoints(far, blocked, (-5.0, -5.0), 0.1, (-2.0, 0.0), free=free)
+    keep = clear_viewpoints(far, blocked, spec, (-2.0, 0.0), free=free)
     np.testing.assert_array_equal(keep, far_eyes[:, 0] >= -3.0)  # over unknown space: maybe in a wall
     # a camera off the map is dropped too
-    assert not clear_viewpoints(vms, blocked, (10.0, 10.0), 0.1, (0.0, 0.0)).any()
+    assert not clear_viewpoints(vms, blocked, GridSpec((10.0, 10.0), 0.1, (100, 100)), (0.0, 0.0)).any()
+    with pytest.raises(ValueError, match="shape"):
+        clear_viewpoints(vms, blocked[:50], spec, (0.0, 0.0))
 
 
 def test_verify_object_uses_given_cameras_and_checks_them():
@@ -562,7 +566,8 @@ def test_verify_object_uses_given_cameras_and_checks_them():
     rng = np.random.default_rng(0)
     n = 400
     gmap = (rng.uniform(-0.3, 0.3, (n, 3)).astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
-            np.full((n, 3), 0.03, np.float32), np.full(n, 0.9, np.float32), rng.uniform(0, 1, (n, 3)).astype(np.float32))
+            np.full((n, 3), 0.03, np.float32), np.full(n, 0.9, np.float32),
+            rng.uniform(0, 1, (n, 3)).astype(np.float32))
     K = sim.intrinsics(64, 48)
     vms = hemisphere_viewpoints([0.0, 0.0, 0.0], 1.0, 3, (30.0,), min_height=None, max_height=None)
     goal = rng.uniform(0, 1, (48, 64, 3)).astype(np.float32)

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from splatsearch.nav.grid import GridSpec
+
 #: world z of the ceiling in the procedural houses is 2.6 m; cameras stay a little below it
 DEFAULT_MAX_HEIGHT = 2.4
 DEFAULT_MIN_HEIGHT = 0.2
@@ -103,8 +105,8 @@ def hemisphere_viewpoints(centroid: Sequence[float], radius: float = 1.5, n_view
     return np.stack(out)
 
 
-def clear_viewpoints(viewmats: np.ndarray, blocked: np.ndarray, origin_xy: Sequence[float], cell_size: float,
-                     target_xy: Sequence[float], skip_radius: float = 0.0, free: np.ndarray | None = None) -> np.ndarray:
+def clear_viewpoints(viewmats: np.ndarray, blocked: np.ndarray, spec: GridSpec, target_xy: Sequence[float],
+                     skip_radius: float = 0.0, free: np.ndarray | None = None) -> np.ndarray:
     """Which cameras see ``target_xy`` across a 2-D obstacle map: (V,) bool.
 
     A camera is kept when the cell under it is inside the map, not blocked (and ``free`` there,
@@ -115,28 +117,26 @@ def clear_viewpoints(viewmats: np.ndarray, blocked: np.ndarray, origin_xy: Seque
 
     Args:
         viewmats: (V, 4, 4) world-to-camera matrices.
-        blocked: (H, W) bool obstacle cells; row = y, col = x, cell (0, 0) at ``origin_xy``.
-        origin_xy: world (x, y) in metres of the grid's corner; cell_size: metres per cell.
+        blocked: (H, W) bool obstacle cells on the grid ``spec`` (its origin, cell size, shape).
+        spec: the grid's placement in metres (:class:`~splatsearch.nav.grid.GridSpec`).
         target_xy: (2,) world metres; skip_radius: metres around it not checked.
         free: optional (H, W) bool known-free cells.
     """
     vms = np.asarray(viewmats, np.float64).reshape(-1, 4, 4)
     blocked = np.asarray(blocked, bool)
-    if blocked.ndim != 2 or not cell_size > 0:
-        raise ValueError("blocked must be a 2-D mask and cell_size > 0")
-    o = np.asarray(origin_xy, np.float64).reshape(2)
+    if blocked.shape != spec.shape:
+        raise ValueError(f"blocked must have the grid's shape {spec.shape}, got {blocked.shape}")
     t = np.asarray(target_xy, np.float64).reshape(2)
-    H, W = blocked.shape
     keep = np.zeros(len(vms), bool)
     for i, vm in enumerate(vms):
         eye = -vm[:3, :3].T @ vm[:3, 3]
         seg = t - eye[:2]
         length = float(np.linalg.norm(seg))
-        n = max(2, int(np.ceil(max(length - skip_radius, 0.0) / (0.5 * cell_size))) + 1)
-        s = np.linspace(0.0, max(length - skip_radius, 0.0) / max(length, 1e-9), n)
-        pts = eye[:2] + s[:, None] * seg
-        rc = np.floor((pts[:, ::-1] - o[::-1]) / cell_size).astype(np.int64)
-        if not ((rc >= 0) & (rc < [H, W])).all():
+        reach = max(length - skip_radius, 0.0)
+        # samples every half cell, so no cell the segment crosses is skipped
+        s = np.linspace(0.0, reach / max(length, 1e-9), max(2, int(np.ceil(reach / (0.5 * spec.cell_size))) + 1))
+        rc = spec.world_to_cell(eye[:2] + s[:, None] * seg)
+        if not spec.in_bounds(rc).all():
             continue
         if free is not None and not free[rc[0, 0], rc[0, 1]]:
             continue
