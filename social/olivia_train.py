@@ -498,10 +498,10 @@ def tsm_diagnostics(tsm_p, rows: dict, e_img: np.ndarray, actions: np.ndarray, d
     f = jax.jit(lambda e, t, u: tsm.TSM(cfg.tsm).apply({"params": tsm_p}, e, t, u))
 
     def acc(e_text, tr, k, use):
-        sel = np.concatenate([np.asarray(jnp.argmax(f(jnp.asarray(e_text[i:i + 512]), jnp.asarray(tr[i:i + 512]),
-                                                      jnp.full(len(tr[i:i + 512]), use)), -1))
-                              for i in range(0, len(tr), 512)]) if len(tr) else np.zeros(0, int)
-        return float(np.mean(sel == k)) if len(k) else float("nan")
+        if not len(k):
+            return float("nan")
+        sel = map_rows(lambda e, t: jnp.argmax(f(e, t, jnp.full(len(t), use)), -1), [e_text, tr], 512)
+        return float(np.mean(sel == k))
 
     ret = jax.jit(jax.vmap(lambda e: retrieve(jnp.asarray(db.embeddings), jnp.asarray(db.actions, jnp.int32), e,
                                               cfg.retrieve_k, cfg.retrieve_tau)[0]))
