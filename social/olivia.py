@@ -58,8 +58,9 @@ class OliviaConfig:
 N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
 
 
-def retrieve(db, db_actions, e_img, k: int, tau: float):
-    """(index into D_T of the retrieved E_T, vote vector (N_VOTES,)) for the unit E_I (D,).
+def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau: float) -> tuple[jax.Array, jax.Array]:
+    """(index into D_T of the retrieved E_T, vote vector (N_VOTES,)) for the unit E_I (D,);
+    ``db`` (M, D) unit caption embeddings, ``db_actions`` (M,) int action of each caption (-1: none).
 
     The ``k`` captions most cosine-similar to E_I vote for their actions (weights
     ``softmax(similarity / tau)``); E_T is the caption most similar to E_I among those of the

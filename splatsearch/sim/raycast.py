@@ -186,7 +186,13 @@ class SensorNoise:
 
 
 class HouseRenderer:
-    """Renders a :class:`House` with Warp ray casting; the BVH is built once."""
+    """Renders a :class:`House` with Warp ray casting; the BVH is built once.
+
+    Args:
+        house: the scene. device: Warp device ("cpu" by default, or "cuda").
+        detail: strength in [0, 1] of the per-material surface detail; None uses
+            :data:`TEXTURE_DETAIL`. It changes colours only, never depth or labels.
+    """
 
     def __init__(self, house: House, device: str | None = None, detail: float | None = None):
         self.house = house
