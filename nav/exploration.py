@@ -219,6 +219,12 @@ class ExplorationPlanner:
         """:meth:`observe` for a simulator ``Observation`` (frame.depth, frame.rgb, viewmat, pose)."""
         return self.observe(obs.frame.depth, obs.viewmat, K, obs.pose, obs.frame.rgb)
 
+    def note_action(self, action: str) -> None:
+        """Record the action the robot actually takes when a caller overrides :meth:`act` (e.g. it
+        follows its own path to a goal), so that :meth:`observe` can still tell that a
+        ``move_forward`` went nowhere and mark the obstacle the camera missed."""
+        self._last_action = str(action)
+
     def mark_blocked_ahead(self, pose) -> None:
         """Put an obstacle cell just beyond the robot's rim, straight ahead of ``pose``.
 

@@ -43,6 +43,16 @@ def make_eval_episodes(split: str, n: int, seed: int = 0, per_house: int = 5) ->
     return eps
 
 
+def _init_worker(threads: int) -> None:
+    """Give each worker process its share of the cores: Warp's CPU bands and XLA's thread pool
+    would otherwise each take every core in every worker and fight over them."""
+    os.environ["SPLATSEARCH_THREADS"] = str(threads)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "intra_op_parallelism_threads" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + f" --xla_cpu_multi_thread_eigen={str(threads > 1).lower()}"
+                                   f" intra_op_parallelism_threads={threads}").strip()
+
+
 def _run_one(args):
     ep_json, variant, max_steps = args
     import warp as wp
@@ -112,7 +122,10 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIA
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")  # Warp and XLA hold threads: never fork them
-        with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+        from splatsearch.kernels.parallel import cpu_threads
+
+        threads = max(1, cpu_threads() // workers)
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,)) as pool:
             futs = [pool.submit(_run_one, j) for j in jobs]
             for f in as_completed(futs):
                 results.append(f.result())

@@ -90,3 +90,14 @@ def test_observation_crops_stay_matchable_for_sliver_masks():
     mask[:] = False
     mask[100:140, 100:180] = True
     assert _crop_around(rgb, mask).shape == (80, 160, 3)  # grown by half the box each side
+
+
+def test_agent_gives_up_a_goal_it_cannot_get_closer_to(episode):
+    ep, env = episode
+    agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
+                             ep.start, config=AgentConfig(goal_patience=3))
+    assert not agent._goal_stalled(0, 5.0)  # first distance: progress
+    assert not agent._goal_stalled(0, 4.0)
+    stalled = [agent._goal_stalled(0, 3.95) for _ in range(4)]  # less than 0.1 m closer each time
+    assert stalled == [False, False, False, True]
+    assert not agent._goal_stalled(1, 9.0)  # another goal starts afresh

@@ -846,6 +846,14 @@ def test_exploration_marks_a_forward_step_that_went_nowhere():
     assert ep.occupancy.state[tuple(ahead)] == FREE
     ep.observe(blind, level_viewmat(*pose, 1.31), K, pose)  # the robot did not move
     assert ep.occupancy.state[tuple(ahead)] == OCCUPIED
+    # a caller that moves on its own plan (the agent heading to a matched object) reports its
+    # action, and a bump is marked all the same
+    spec, ep, pose = _corridor_planner(ExplorationConfig(initial_turns=0))
+    ep.observe(blind, level_viewmat(*pose, 1.31), K, pose)
+    ahead = spec.world_to_cell(pose[:2] + [0.17 + 0.05, 0.0])
+    ep.note_action("move_forward")
+    ep.observe(blind, level_viewmat(*pose, 1.31), K, pose)
+    assert ep.occupancy.state[tuple(ahead)] == OCCUPIED
     with pytest.raises(TypeError):
         OccupancyGrid((0.0, 0.0))
 

@@ -355,13 +355,15 @@ class ObjectDB:
         return out
 
     def record_match(self, entry_id: int, e_max: float, best_view: int, tau_m: float,
-                     best_viewmat: np.ndarray | None = None) -> ObjectEntry:
+                     best_viewmat: np.ndarray | None = None, *, nvsm_run: bool = True) -> ObjectEntry:
         """Store an NVSM + FEM result (eq 18). ``e_max`` keeps the best score over runs, since every
-        run is evidence for the same object; ``matched`` becomes ``e_max >= tau_m``."""
+        run is evidence for the same object; ``matched`` becomes ``e_max >= tau_m``.
+        ``nvsm_run=False`` records a match of a real observation, which does not count as an NVSM
+        run (``n_nvsm``)."""
         e = self.entries[entry_id]
         if not np.isfinite(e_max) or e_max < 0:
             raise ValueError(f"e_max must be a finite count >= 0, got {e_max}")
-        e.n_nvsm += 1
+        e.n_nvsm += int(bool(nvsm_run))
         if e_max > e.e_max:
             e.e_max, e.best_view = float(e_max), int(best_view)
             e.best_viewmat = None if best_viewmat is None else np.asarray(best_viewmat, np.float64).copy()
