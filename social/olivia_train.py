@@ -480,8 +480,7 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
         f"({r3.seconds:.0f} s)")
     summary["db_size"] = len(db.captions)
     summary["seconds"] = time.perf_counter() - t_start
-    with open(os.path.join(out_dir, "train_summary.json"), "w", encoding="utf-8") as f:
-        json.dump(summary, f, indent=1)
+    atomic_write_bytes(os.path.join(out_dir, "train_summary.json"), json.dumps(summary, indent=1).encode())
     log(f"wrote {os.path.join(out_dir, 'olivia.npz')} (total {summary['seconds']:.0f} s)")
     return summary
 

@@ -20,7 +20,7 @@ import numpy as np
 from splatsearch.gaussians import GaussianMap
 from splatsearch.mapper import Frame, Mapper, MapperConfig
 
-from .novel_views import crop_box_for
+from .novel_views import camera_pose, crop_box_for
 
 
 @dataclass
@@ -54,11 +54,6 @@ class LocalMapConfig:
             raise ValueError(f"invalid LocalMapConfig: {self}")
 
 
-def _camera(viewmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    R, t = viewmat[:3, :3], viewmat[:3, 3]
-    return -R.T @ t, R[2]
-
-
 class ObservationStore:
     """Up to ``max_frames`` full-resolution observations per object entry.
 
@@ -78,8 +73,8 @@ class ObservationStore:
 
     @staticmethod
     def _dist(a: Frame, b: Frame) -> float:
-        ca, fa = _camera(a.viewmat)
-        cb, fb = _camera(b.viewmat)
+        ca, fa = camera_pose(a.viewmat)
+        cb, fb = camera_pose(b.viewmat)
         # 1 m of travel ~ 60 degrees of turn: both change what the camera sees by about as much
         return float(np.linalg.norm(ca - cb) + np.arccos(np.clip(fa @ fb, -1.0, 1.0)))
 
@@ -91,9 +86,9 @@ class ObservationStore:
             raise ValueError(f"expected rgb (H, W, 3), depth (H, W), viewmat (4, 4); got "
                              f"{f.rgb.shape}, {f.depth.shape}, {f.viewmat.shape}")
         kept = self._frames.setdefault(entry_id, [])
-        c_new, f_new = _camera(f.viewmat)
+        c_new, f_new = camera_pose(f.viewmat)
         for i, k in enumerate(kept):
-            c, fw = _camera(k.viewmat)
+            c, fw = camera_pose(k.viewmat)
             if np.linalg.norm(c - c_new) < self.min_separation and fw @ f_new > np.cos(np.radians(20)):
                 kept[i] = f  # the same viewpoint: the newer view (of a better map pose) wins
                 return

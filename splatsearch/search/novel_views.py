@@ -24,6 +24,14 @@ DEFAULT_MAX_HEIGHT = 2.4
 DEFAULT_MIN_HEIGHT = 0.2
 
 
+def camera_pose(viewmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centre (3,), optical axis (3,)) in world coordinates of a (4, 4) world-to-camera matrix:
+    the centre is ``-R^T t`` and the axis is the camera's +z row of ``R`` (OpenCV frame)."""
+    vm = np.asarray(viewmat, np.float64)
+    R, t = vm[:3, :3], vm[:3, 3]
+    return -R.T @ t, R[2].copy()
+
+
 def _look_at_from(eye: np.ndarray, target: np.ndarray, az: float) -> np.ndarray:
     """World-to-camera (OpenCV) at ``eye`` looking at ``target`` with no roll. ``az`` is the camera's
     azimuth around the target; the right axis comes from it, so a camera straight above the target
@@ -129,7 +137,7 @@ def clear_viewpoints(viewmats: np.ndarray, blocked: np.ndarray, spec: GridSpec, 
     t = np.asarray(target_xy, np.float64).reshape(2)
     keep = np.zeros(len(vms), bool)
     for i, vm in enumerate(vms):
-        eye = -vm[:3, :3].T @ vm[:3, 3]
+        eye, _ = camera_pose(vm)
         seg = t - eye[:2]
         length = float(np.linalg.norm(seg))
         reach = max(length - skip_radius, 0.0)

@@ -19,6 +19,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .novel_views import camera_pose
+
 # --------------------------------------------------------------------------------------------
 # lifting
 # --------------------------------------------------------------------------------------------
@@ -272,9 +274,7 @@ class ObjectDB:
         the optical axis projected on the floor)."""
         p = np.asarray(pose, np.float64)
         if p.shape == (4, 4):
-            R, t = p[:3, :3], p[:3, 3]
-            c = -R.T @ t
-            fwd = R[2]  # the camera z axis in world coordinates
+            c, fwd = camera_pose(p)
             x, y, yaw = c[0], c[1], np.arctan2(fwd[1], fwd[0])
         elif p.shape == (3,):
             x, y, yaw = p
