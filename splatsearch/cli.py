@@ -298,6 +298,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "repeats", 1) < 1:
         build_parser().error("--repeats must be >= 1")
+    from splatsearch.compile_cache import enable_compile_cache
+
+    enable_compile_cache()
     try:
         return args.func(args)
     except ValueError as e:

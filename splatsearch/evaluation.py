@@ -51,6 +51,9 @@ def _init_worker(threads: int) -> None:
     if "intra_op_parallelism_threads" not in flags:
         os.environ["XLA_FLAGS"] = (flags + f" --xla_cpu_multi_thread_eigen={str(threads > 1).lower()}"
                                    f" intra_op_parallelism_threads={threads}").strip()
+    from splatsearch.compile_cache import enable_compile_cache
+
+    enable_compile_cache()
 
 
 def _run_one(args):

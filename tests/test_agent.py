@@ -101,3 +101,19 @@ def test_agent_gives_up_a_goal_it_cannot_get_closer_to(episode):
     stalled = [agent._goal_stalled(0, 3.95) for _ in range(4)]  # less than 0.1 m closer each time
     assert stalled == [False, False, False, True]
     assert not agent._goal_stalled(1, 9.0)  # another goal starts afresh
+
+
+def test_compile_cache_is_configurable(tmp_path, monkeypatch):
+    import jax
+
+    from splatsearch.compile_cache import ENV_VAR, enable_compile_cache
+
+    old = jax.config.jax_compilation_cache_dir
+    try:
+        monkeypatch.setenv(ENV_VAR, "off")
+        assert enable_compile_cache() is None
+        monkeypatch.setenv(ENV_VAR, str(tmp_path / "cache"))
+        assert enable_compile_cache() == str(tmp_path / "cache")
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache") and (tmp_path / "cache").is_dir()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
