@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .costs import CRITICS, CostInputs, CriticSpec, time_to_collision
-from .geometry import F32, DistanceField
+from .geometry import F32, DistanceField, pad_rows
 
 # CoNVOI V-A: α1 = 10 heading, α2 = 7 obstacles, α3 = 1 velocity, α4 = 7.5 reference path, with
 # every term min-max normalised (σ). Kept for reference: in our corridor tests those three terms
@@ -293,35 +293,11 @@ def make_inputs(pose, vel, goal, field: DistanceField, cfg: DWAConfig, *, people
         t = (np.arange(T, dtype=np.float32) + 1) * cfg.dt
         fut[:, : len(p)] = p[None] + t[:, None, None] * v[None]
         pv[: len(p)] = True if people_valid is None else np.asarray(people_valid, bool)
-    R = max_ref
-    refa = np.zeros((R, 2), np.float32)
-    refv = np.zeros(R, bool)
-    if ref is not None and len(ref):
-        r = np.asarray(ref, np.float32).reshape(-1, 2)
-        if len(r) > R:
-            raise ValueError(f"{len(r)} reference points exceed max_ref={R}")
-        refa[: len(r)] = r
-        refv[: len(r)] = True
-    G = max_groups
-    ga = np.zeros((G, 2), np.int32)
-    gv = np.zeros(G, bool)
-    if groups is not None and len(groups):
-        g = np.asarray(groups, np.int32).reshape(-1, 2)
-        if len(g) > G:
-            raise ValueError(f"{len(g)} group pairs exceed max_groups={G}")
-        if g.min() < 0 or g.max() >= P:
-            raise ValueError("group pairs must index people in [0, max_people)")
-        ga[: len(g)] = g
-        gv[: len(g)] = True
-    M = max_path
-    pa = np.zeros((M, 2), np.float32)
-    pvld = np.zeros(M, bool)
-    if path is not None and len(path):
-        q = np.asarray(path, np.float32).reshape(-1, 2)
-        if len(q) > M:
-            raise ValueError(f"{len(q)} path points exceed max_path={M}")
-        pa[: len(q)] = q
-        pvld[: len(q)] = True
+    refa, refv = pad_rows(ref, max_ref, what="reference points (max_ref)")
+    ga, gv = pad_rows(groups, max_groups, np.int32, what="group pairs (max_groups)")
+    if gv.any() and (ga[gv].min() < 0 or ga[gv].max() >= P):
+        raise ValueError("group pairs must index people in [0, max_people)")
+    pa, pvld = pad_rows(path, max_path, what="path points (max_path)")
     return DWAInputs(jnp.asarray(pose), jnp.asarray(vel), jnp.asarray(goal), field, jnp.asarray(fut),
                      jnp.asarray(pv), jnp.asarray(refa), jnp.asarray(refv), jnp.asarray(bool(ref_active)),
                      jnp.asarray(ga), jnp.asarray(gv), jnp.asarray(pa), jnp.asarray(pvld))

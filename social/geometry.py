@@ -63,6 +63,25 @@ def check_capsules(capsules) -> np.ndarray:
     return c
 
 
+def pad_rows(rows, n: int, dtype=np.float32, *, width: int = 2, what: str = "rows",
+             truncate: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Pad ``rows`` (M, width) (or None / empty) to (n, width) zeros of ``dtype`` with a validity
+    mask (n,), so that jitted code sees one shape. More than ``n`` rows raise a ValueError naming
+    ``what``, or are cut to the first ``n`` with ``truncate``."""
+    out = np.zeros((n, width), dtype)
+    valid = np.zeros(n, bool)
+    if rows is None or len(rows) == 0:
+        return out, valid
+    r = np.asarray(rows, dtype).reshape(-1, width)
+    if len(r) > n:
+        if not truncate:
+            raise ValueError(f"{len(r)} {what} exceed the padded size {n}")
+        r = r[:n]
+    out[: len(r)] = r
+    valid[: len(r)] = True
+    return out, valid
+
+
 def pad_capsules(capsules, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Pad (S, 5) capsules to (n, 5) with a validity mask (n,) so that every scenario shares one
     compiled shape. Raises if S > n."""

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .geometry import F32, DistanceField, field_lookup, point_segment_distance
+from .geometry import F32, DistanceField, field_lookup, pad_rows, point_segment_distance
 
 
 def _xy(a, name: str) -> np.ndarray:
@@ -295,23 +295,9 @@ def path_unacceptable(path, field: DistanceField, *, clearance: float = 0.25, pe
     ``clearance`` to an obstacle, closer than ``person_gap`` to a person centre ``people`` (P, 2),
     or between two members of a group (``group_pairs`` (G, 2) indices into ``people``)."""
     pts = _xy(path, "path")
-    K = _bucket(len(pts), 8)
-    pp = np.zeros((K, 2), np.float32)
-    pv = np.zeros(K, bool)
-    pp[: len(pts)] = pts
-    pv[: len(pts)] = True
-    ppl = np.zeros((16, 2), np.float32)
-    plv = np.zeros(16, bool)
-    if people is not None and len(people):
-        q = np.asarray(people, np.float32).reshape(-1, 2)[:16]
-        ppl[: len(q)] = q
-        plv[: len(q)] = True
-    prs = np.zeros((16, 2), np.int32)
-    prv = np.zeros(16, bool)
-    if group_pairs is not None and len(group_pairs):
-        g = np.asarray(group_pairs, np.int32).reshape(-1, 2)[:16]
-        prs[: len(g)] = g
-        prv[: len(g)] = True
+    pp, pv = pad_rows(pts, _bucket(len(pts), 8))
+    ppl, plv = pad_rows(people, 16, truncate=True)
+    prs, prv = pad_rows(group_pairs, 16, np.int32, truncate=True)
     return bool(_unacceptable(jnp.asarray(pp), jnp.asarray(pv), field, float(clearance), jnp.asarray(ppl),
                               jnp.asarray(plv), float(person_gap), jnp.asarray(prs), jnp.asarray(prv), samples))
 

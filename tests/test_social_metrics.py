@@ -131,3 +131,17 @@ def test_bad_inputs_raise():
         M.psv_duration(np.zeros((5, 2)), np.zeros((4, 1, 2)), 0.1)
     with pytest.raises(ValueError):
         M.mean_velocity(np.zeros((5, 2)), 0.0)
+
+
+def test_pad_rows_pads_masks_and_guards_capacity():
+    from splatsearch.social.geometry import pad_rows
+
+    out, valid = pad_rows([[1, 2], [3, 4]], 4)
+    assert out.shape == (4, 2) and out.dtype == np.float32 and valid.tolist() == [True, True, False, False]
+    assert out[:2].tolist() == [[1, 2], [3, 4]] and not out[2:].any()
+    out, valid = pad_rows(None, 3, np.int32)
+    assert out.dtype == np.int32 and not valid.any()
+    with pytest.raises(ValueError, match="group pairs"):
+        pad_rows(np.zeros((5, 2)), 4, what="group pairs")
+    out, valid = pad_rows(np.arange(10).reshape(5, 2), 4, truncate=True)
+    assert valid.all() and out[-1].tolist() == [6, 7]
