@@ -359,7 +359,7 @@ class SplatSearchAgent:
                 self.path_xy = np.zeros((0, 2))
             if plan.status in ("reached", "closest"):
                 return "stop", "goal_reached"
-            if self._goal_stalled(e.id, plan.distance):
+            if np.isfinite(plan.distance) and self._goal_stalled(e.id, plan.distance):
                 self._given_up.add(e.id)  # no progress for a long while: try the next candidate
                 return "turn_left", "stuck_goal"
             if plan.status == "unreachable":
@@ -377,10 +377,12 @@ class SplatSearchAgent:
 
     def _goal_stalled(self, entry_id: int, distance: float) -> bool:
         """True when the geodesic distance to goal entry ``entry_id`` has not dropped by 0.1 m in
-        ``goal_patience`` steps (the robot keeps bumping into something the map lacks)."""
+        ``goal_patience`` reachable steps (the robot keeps bumping into something the map lacks).
+        Steps where the goal is unreachable on the map are not counted: the agent is exploring
+        toward it then."""
         if self._goal_progress is None or self._goal_progress[0] != entry_id:
             self._goal_progress = [entry_id, np.inf, 0]
-        if np.isfinite(distance) and distance < self._goal_progress[1] - 0.1:
+        if distance < self._goal_progress[1] - 0.1:
             self._goal_progress[1:] = [distance, 0]
             return False
         self._goal_progress[2] += 1
