@@ -117,3 +117,26 @@ def test_compile_cache_is_configurable(tmp_path, monkeypatch):
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache") and (tmp_path / "cache").is_dir()
     finally:
         jax.config.update("jax_compilation_cache_dir", old)
+
+
+def test_agent_keeps_a_matched_goal_while_the_way_to_it_is_unmapped(episode):
+    from splatsearch.nav.fmm import Plan
+
+    ep, env = episode
+    agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
+                             ep.start, config=AgentConfig(goal_patience=3))
+    res = agent.db.add(ep.goal_class, np.array([ep.start[0] + 3.0, ep.start[1], 0.5]), np.asarray(ep.start, float))
+    agent.db.record_match(res.entry_id, 40.0, 0, agent.cfg.tau_m)
+
+    class Unmapped:  # the goal is not reachable on the map yet
+        def plan(self, *a, **k):
+            return Plan("stop", "unreachable", np.inf)
+
+        def path(self, *a, **k):
+            raise ValueError("no path")
+
+    agent.explorer.planner = lambda: Unmapped()
+    pose = np.asarray(ep.start, float)
+    statuses = [agent._decide(pose)[1] for _ in range(10)]
+    assert res.entry_id not in agent._given_up  # ten unreachable steps do not count as stalling
+    assert "stuck_goal" not in statuses
