@@ -279,8 +279,7 @@ class SplatSearchAgent:
                 # the detection's neighbourhood in the real frame: the no_nvsm ablation's only
                 # evidence, and the full system's too when match_observations is on (the NVSM
                 # adds rendered views to the real ones)
-                crop = _crop_around(rgb, d.mask, margin=MATCH_CROP_MARGIN)
-                n = self.matcher.count(self.goal, crop)
+                n = self._match_detection(rgb, d.mask)
                 self.db.record_match(res.entry_id, float(n), 0, self.cfg.tau_m,
                                      nvsm_run=self.cfg.variant == "no_nvsm")
         if self.cfg.variant in ("no_nvsm", "gaussnav"):
@@ -289,6 +288,11 @@ class SplatSearchAgent:
         for eid in self.db.pop_pending():
             if self.db[eid].n_nvsm < self.cfg.nvsm_max_runs:
                 self._run_nvsm(eid)
+
+    def _match_detection(self, rgb: np.ndarray, mask: np.ndarray) -> int:
+        """Feature matches between the goal image and the real observation around a detection:
+        rgb (H, W, 3), mask (H, W) bool; the crop keeps ``MATCH_CROP_MARGIN`` of context."""
+        return int(self.matcher.count(self.goal, _crop_around(rgb, mask, margin=MATCH_CROP_MARGIN)))
 
     def _run_nvsm(self, eid: int) -> None:
         cfg = self.cfg
@@ -438,7 +442,7 @@ class SplatSearchAgent:
         elif self._last_obs is not None:
             dets = [d for d in self.detector.detect(self._last_obs[0], self._last_frame) if d.label == self.goal_class]
             for d in dets:
-                n = self.matcher.count(self.goal, _crop_around(self._last_obs[0], d.mask, margin=MATCH_CROP_MARGIN))
+                n = self._match_detection(self._last_obs[0], d.mask)
                 if n > max(e.e_max, 0):
                     self.db.record_match(e.id, float(n), 0, cfg.tau_m)
         if e.matched:
