@@ -27,11 +27,13 @@ def enable_compile_cache(path: str | None = None, min_compile_seconds: float = 0
     :func:`default_cache_dir`. Programs that compile faster than ``min_compile_seconds`` are not
     written. The default keeps them all: a search episode compiles many small programs, and on a
     60-step episode in a fresh process the cache cut 16.0 s to 11.4 s (with a 0.2 s threshold only
-    to 13.1 s). A folder that cannot be created leaves the
-    cache off rather than failing the command.
+    to 13.1 s). A folder that cannot be created leaves the cache off rather than failing the
+    command. Raises ValueError for a negative ``min_compile_seconds``.
     """
     import jax
 
+    if not min_compile_seconds >= 0:
+        raise ValueError(f"min_compile_seconds must be >= 0, got {min_compile_seconds}")
     if path is None:
         path = os.environ.get(ENV_VAR, default_cache_dir())
     if path.strip().lower() in ("", "0", "off", "none"):

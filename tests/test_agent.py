@@ -112,6 +112,8 @@ def test_compile_cache_is_configurable(tmp_path, monkeypatch):
     try:
         monkeypatch.setenv(ENV_VAR, "off")
         assert enable_compile_cache() is None
+        with pytest.raises(ValueError, match="min_compile_seconds"):
+            enable_compile_cache(str(tmp_path / "c"), -1.0)
         monkeypatch.setenv(ENV_VAR, str(tmp_path / "cache"))
         assert enable_compile_cache() == str(tmp_path / "cache")
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache") and (tmp_path / "cache").is_dir()
