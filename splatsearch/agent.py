@@ -15,7 +15,9 @@ One :meth:`SplatSearchAgent.act` call per simulator step:
 
 Variants (the thesis' Table IV ablations): ``splatsearch`` (full), ``no_nvsm`` (match the raw
 observation of each detection instead of rendered views), ``no_inpaint``, ``nearest_frontier``
-(eq 19 with alpha only) and ``gaussnav`` (explore everything first, then identify and go).
+(eq 19 with alpha only) and ``gaussnav`` (explore everything first, then identify and go); and
+``no_appearance`` (the full system without the colour cue of
+:mod:`splatsearch.search.appearance`, which every other variant uses).
 """
 
 from __future__ import annotations
@@ -35,6 +37,11 @@ from splatsearch.nav.exploration import (
 )
 from splatsearch.nav.grid import GridSpec
 from splatsearch.nav.occupancy import FREE, OCCUPIED
+from splatsearch.search.appearance import (
+    AppearanceModel,
+    ColorHistogramAppearance,
+    goal_object_mask,
+)
 from splatsearch.search.detection import Detector, SimDetector
 from splatsearch.search.inpainting import Inpainter, OpenCVInpainter
 from splatsearch.search.local_map import (
@@ -46,7 +53,12 @@ from splatsearch.search.local_map import (
 from splatsearch.search.matching import DEFAULT_TAU_M, Matcher, SIFTMatcher
 from splatsearch.search.novel_views import clear_viewpoints, hemisphere_viewpoints
 from splatsearch.search.object_search import NVSMConfig, verify_object
-from splatsearch.search.objects import ObjectDB, lift_mask_depth, lift_mask_ids, map_top_ids
+from splatsearch.search.objects import (
+    ObjectDB,
+    lift_mask_depth,
+    lift_mask_ids,
+    map_top_ids,
+)
 
 #: context kept around a detection's box when its real observation is matched, as a fraction of
 #: the box size. On 4 explored houses (val-hard goals, every same-class instance seen from >= 150
@@ -54,7 +66,14 @@ from splatsearch.search.objects import ObjectDB, lift_mask_depth, lift_mask_ids,
 #: with 0.5: the goal image shows the object in its surroundings.
 MATCH_CROP_MARGIN = 1.0
 
-VARIANTS = ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav")
+#: metres between the Gaussian-id lift of a detection and its depth lift beyond which the depth lift
+#: is used (the coarse online map has not resolved the object yet).
+LIFT_TOLERANCE = 0.5
+
+#: the thesis' Table IV rows (the evaluation's default) and ``no_appearance``: the full system
+#: identifying by feature matches alone, as the thesis does
+VARIANTS = ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav", "no_appearance")
+EVAL_VARIANTS = VARIANTS[:5]
 
 
 @dataclass
@@ -87,6 +106,18 @@ class AgentConfig:
     object's extent (Habitat success: within 1 m of the object's navigable viewpoints).
     goal_patience: steps without getting 0.1 m closer to a matched object before the agent gives
     it up and turns to the next candidate.
+    identify_every_frame: detect and lift goal-class objects in every frame, not only in mapped
+    ones (between them the masked depth places the detections): an object glimpsed while turning
+    gets three times the views.
+    verify_steps: an object that looks like the goal from too few viewpoints is approached; once
+    there, the agent turns toward it for at most this many steps to confirm it, else gives it up.
+    appearance: also compare the colours of each detection with the goal object's
+    (:mod:`splatsearch.search.appearance`; needs the goal object's mask, from the detector run on
+    the goal image). An object is the goal when its weighted mean similarity over at least
+    ``appearance_min_views`` viewpoints reaches ``tau_a``, or when it passes tau_m (eq 18) and
+    its appearance is not below ``appearance_veto``; a detection's weight grows with its mask up
+    to ``appearance_full_px`` pixels. Objects the appearance rules out get no NVSM or feature
+    matching (neither could change the decision), and neither do objects it already confirms.
     """
 
     variant: str = "splatsearch"
@@ -115,6 +146,13 @@ class AgentConfig:
     delta: float = 0.5
     stop_margin: float = 0.6
     goal_patience: int = 60
+    identify_every_frame: bool = True
+    verify_steps: int = 6
+    appearance: bool = True
+    tau_a: float = 0.35
+    appearance_min_views: int = 2
+    appearance_veto: float = 0.2
+    appearance_full_px: int = 3000
     grid_shape: tuple = (600, 600)
     seed: int = 0
 
@@ -125,6 +163,10 @@ class AgentConfig:
             raise ValueError(f"nvsm_map must be 'local' or 'global', got {self.nvsm_map!r}")
         if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
             raise ValueError("need map_every >= 1, 0 < map_scale <= 1 and n_views >= 1")
+        if not (0 <= self.appearance_veto <= self.tau_a <= 1) or self.appearance_min_views < 1 \
+                or self.appearance_full_px < 1:
+            raise ValueError("need 0 <= appearance_veto <= tau_a <= 1, appearance_min_views >= 1 and "
+                             "appearance_full_px >= 1")
 
 
 @dataclass
@@ -159,20 +201,30 @@ class SplatSearchAgent:
         K, width, height: the robot camera.
         goal_rgb: (H, W, 3) goal image in [0, 1]; goal_class: its object class (a goal category).
         start_pose: (x, y, yaw) where the episode starts (centres the grid maps).
-        config: :class:`AgentConfig`; detector / matcher / inpainter / encoder: plug-ins
-            (offline defaults: simulator masks, SIFT + RANSAC, OpenCV Telea, colour+texture).
+        config: :class:`AgentConfig`; detector / matcher / inpainter / encoder / appearance_model:
+            plug-ins (offline defaults: simulator masks, SIFT + RANSAC, OpenCV Telea,
+            colour+texture, masked hue-saturation histogram).
+        goal_mask: (H, W) bool, the goal object's pixels in the goal image. Without it the
+            detector is run on the goal image (``goal_frame`` is passed to it: the simulator
+            detector needs the goal image's frame); without either the appearance cue is off.
     """
 
     def __init__(self, K, width: int, height: int, goal_rgb: np.ndarray, goal_class: str, start_pose, *,
                  config: AgentConfig | None = None, detector: Detector | None = None,
                  matcher: Matcher | None = None, inpainter: Inpainter | None = None,
-                 encoder: ImageEncoder | None = None):
+                 encoder: ImageEncoder | None = None, goal_mask: np.ndarray | None = None, goal_frame=None,
+                 appearance_model: AppearanceModel | None = None):
         self.cfg = cfg = config or AgentConfig()
         self.K = np.asarray(K, np.float64)
         self.W, self.H = int(width), int(height)
         self.goal = np.asarray(goal_rgb, np.float32)
         self.goal_class = goal_class
+        if self.goal.ndim != 3 or self.goal.shape[2] != 3:
+            raise ValueError(f"goal_rgb must have shape (H, W, 3), got {self.goal.shape}")
         self.detector = detector or SimDetector(goal_classes=(goal_class,))
+        self.appearance_model = appearance_model or ColorHistogramAppearance()
+        use_appearance = cfg.appearance and cfg.variant != "no_appearance"
+        self._goal_sig = self._goal_signature(goal_mask, goal_frame) if use_appearance else None
         self.matcher = matcher or SIFTMatcher()
         self.inpainter = inpainter or OpenCVInpainter()
         only_alpha = cfg.variant in ("nearest_frontier", "gaussnav")
@@ -201,7 +253,7 @@ class SplatSearchAgent:
         # a local map holds only the object's region: what lies outside it is background to fill
         # flat, not holes to inpaint
         self._nvsm_local = replace(self._nvsm, crop=True, crop_margin=0.0, floor_z=None)
-        self._match_observations = cfg.match_observations and cfg.variant in ("splatsearch", "no_inpaint")
+        self._match_observations = cfg.match_observations and cfg.variant in ("splatsearch", "no_inpaint", "no_appearance")
         self.observations = ObservationStore(cfg.local_map.max_frames, cfg.local_map.min_separation)
         self.frame_index = 0
         self.nvsm_runs = 0
@@ -211,12 +263,29 @@ class SplatSearchAgent:
         self.path_xy: np.ndarray = np.zeros((0, 2))
         self._explored = False
         self._given_up: set[int] = set()
+        self._fallback: int | None = None
+        self._verify: tuple[int, int] | None = None
         self._goal_progress: list | None = None
         self._inspected: set[int] = set()
         self._inspecting: int | None = None
         self._inspect_start = 0
         self._last_obs = None
         self._last_frame = None
+
+    def _goal_signature(self, goal_mask, goal_frame) -> np.ndarray | None:
+        if goal_mask is None:
+            try:
+                goal_mask = goal_object_mask(self.detector.detect(self.goal, goal_frame), self.goal_class)
+            except ValueError:
+                goal_mask = None  # e.g. the simulator detector without the goal image's frame
+        if goal_mask is None:
+            return None
+        goal_mask = np.asarray(goal_mask, bool)
+        if goal_mask.shape != self.goal.shape[:2]:
+            raise ValueError(f"goal_mask shape {goal_mask.shape} does not match the goal image {self.goal.shape[:2]}")
+        if goal_mask.sum() < 1:
+            return None
+        return self.appearance_model.signature(self.goal, goal_mask)
 
     # -- one step -------------------------------------------------------------------------------
     def act(self, rgb: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, pose, frame=None) -> StepInfo:
@@ -231,14 +300,16 @@ class SplatSearchAgent:
         self._last_obs, self._last_frame = (rgb, depth, viewmat), frame
         self.explorer.observe(depth, viewmat, self.K, pose, rgb)
         t["nav"] = time.perf_counter() - t0
-        if self.frame_index % self.cfg.map_every == 0:
+        mapped = self.frame_index % self.cfg.map_every == 0
+        if mapped:
             t1 = time.perf_counter()
             small_rgb = cv2.resize(np.asarray(rgb, np.float32), (self.mW, self.mH), interpolation=cv2.INTER_AREA)
             small_d = cv2.resize(np.asarray(depth, np.float32), (self.mW, self.mH), interpolation=cv2.INTER_NEAREST)
             self.mapper.update(small_rgb, small_d, viewmat)
             t["map"] = time.perf_counter() - t1
+        if mapped or self.cfg.identify_every_frame:
             t1 = time.perf_counter()
-            self._identify(rgb, depth, viewmat, pose, frame)
+            self._identify(rgb, depth, viewmat, pose, frame, use_map=mapped)
             t["identify"] = time.perf_counter() - t1
         self.frame_index += 1
         t1 = time.perf_counter()
@@ -252,30 +323,44 @@ class SplatSearchAgent:
         return StepInfo(action, status, len(fr), len(self.db), best, self.nvsm_runs, t)
 
     # -- SOIM + NVSM + FEM ----------------------------------------------------------------------
-    def _identify(self, rgb, depth, viewmat, pose, frame) -> None:
+    def _identify(self, rgb, depth, viewmat, pose, frame, use_map: bool = True) -> None:
         dets = [d for d in self.detector.detect(rgb, frame) if d.label == self.goal_class]
         if not dets:
             return
         ids = None
         for d in dets:
-            if ids is None:
-                ids = map_top_ids(self.mapper.map, viewmat, self.mK, self.mW, self.mH)
-            mask = cv2.resize(d.mask.astype(np.uint8), (self.mW, self.mH), interpolation=cv2.INTER_NEAREST) > 0
-            means = np.asarray(self.mapper.map.means)
-            lifted = lift_mask_ids(mask, ids, means, active=np.asarray(self.mapper.map.active), erode_px=1)
-            if lifted is None:
-                # too few Gaussians under a small mask at the mapping resolution: lift the
-                # full-resolution masked depth instead
-                lifted = lift_mask_depth(d.mask, depth, viewmat, self.K, erode_px=1)
+            if np.mean(depth[d.mask] > 0) < 0.5:
+                # mostly beyond the depth sensor's range: the map holds no Gaussians of it, and
+                # those under its mask belong to whatever nearer thing frames it
+                continue
+            lifted = None
+            if use_map:
+                if ids is None:
+                    ids = map_top_ids(self.mapper.map, viewmat, self.mK, self.mW, self.mH)
+                mask = cv2.resize(d.mask.astype(np.uint8), (self.mW, self.mH), interpolation=cv2.INTER_NEAREST) > 0
+                means = np.asarray(self.mapper.map.means)
+                lifted = lift_mask_ids(mask, ids, means, active=np.asarray(self.mapper.map.active), erode_px=1)
+            by_depth = lift_mask_depth(d.mask, depth, viewmat, self.K, erode_px=1)
+            if lifted is None or (by_depth is not None and
+                                  np.linalg.norm(lifted.centroid - by_depth.centroid) > LIFT_TOLERANCE):
+                # too few Gaussians under a small mask at the mapping resolution, or Gaussians of
+                # what lies behind the object (the coarse map has not resolved it yet): the
+                # full-resolution masked depth places it instead
+                lifted = by_depth
             if lifted is None:
                 continue
             res = self.db.add_lifted(d.label, lifted, viewmat)
             if res.new_viewpoint:
                 sim = cosine(self.encoder.embed(_crop_around(rgb, d.mask)), self._goal_embedding)
                 self.appearance[res.entry_id] = max(sim, self.appearance.get(res.entry_id, -1.0))
+                if self._goal_sig is not None:
+                    a = self.appearance_model.similarity(self._goal_sig, self.appearance_model.signature(rgb, d.mask))
+                    w = min(d.n_pixels, self.cfg.appearance_full_px) / self.cfg.appearance_full_px
+                    self.db.record_appearance(res.entry_id, min(max(a, 0.0), 1.0), w)
             if res.new_viewpoint and self.cfg.nvsm_map == "local":
                 self.observations.add(res.entry_id, rgb, depth, viewmat)
-            if res.new_viewpoint and (self.cfg.variant == "no_nvsm" or self._match_observations):
+            if res.new_viewpoint and (self.cfg.variant == "no_nvsm" or self._match_observations) \
+                    and self._matching_can_decide(self.db[res.entry_id]):
                 # the detection's neighbourhood in the real frame: the no_nvsm ablation's only
                 # evidence, and the full system's too when match_observations is on (the NVSM
                 # adds rendered views to the real ones)
@@ -286,8 +371,42 @@ class SplatSearchAgent:
             self.db.pop_pending()  # gaussnav identifies after exploring; no_nvsm matched above
             return
         for eid in self.db.pop_pending():
-            if self.db[eid].n_nvsm < self.cfg.nvsm_max_runs:
+            if self.db[eid].n_nvsm < self.cfg.nvsm_max_runs and self._matching_can_decide(self.db[eid]):
                 self._run_nvsm(eid)
+
+    def _appearance_says_goal(self, e) -> bool:
+        return (self._goal_sig is not None and e.app_views >= self.cfg.appearance_min_views
+                and e.appearance >= self.cfg.tau_a)
+
+    def _appearance_rules_out(self, e) -> bool:
+        return self._goal_sig is not None and e.app_views > 0 and e.appearance < self.cfg.appearance_veto
+
+    def _matching_can_decide(self, e) -> bool:
+        """Whether feature matching (raw or NVSM) could still change what the agent makes of entry
+        ``e``: not when its appearance already rules it out or already confirms it."""
+        return not (self._appearance_rules_out(e) or self._appearance_says_goal(e))
+
+    def is_goal(self, e) -> bool:
+        """Whether entry ``e`` is taken for the goal: its appearance confirms it, or it passed
+        tau_m (eq 18) and its appearance does not rule it out."""
+        return self._appearance_says_goal(e) or (e.matched and not self._appearance_rules_out(e))
+
+    def goal_candidates(self) -> list:
+        """Entries taken for the goal and not given up, most likely first (appearance, then
+        e_max). gaussnav identifies only once it has explored everything."""
+        if self.cfg.variant == "gaussnav" and not self._explored:
+            return []
+        out = [e for e in self.db if e.id not in self._given_up and (self.is_goal(e) or e.id == self._fallback)]
+        return sorted(out, key=lambda e: (-e.appearance, -e.e_max))
+
+    def _promising(self) -> list:
+        """Entries whose appearance reaches tau_a from too few viewpoints to confirm them, most
+        similar first: the agent walks up to them to see them again."""
+        if self._goal_sig is None or (self.cfg.variant == "gaussnav" and not self._explored):
+            return []
+        out = [e for e in self.db if e.id not in self._given_up and not self.is_goal(e)
+               and e.appearance >= self.cfg.tau_a]
+        return sorted(out, key=lambda e: -e.appearance)
 
     def _match_detection(self, rgb: np.ndarray, mask: np.ndarray) -> int:
         """Feature matches between the goal image and the real observation around a detection:
@@ -335,22 +454,26 @@ class SplatSearchAgent:
 
     # -- planning -------------------------------------------------------------------------------
     def _decide(self, pose, *, after_exploring: bool = False) -> tuple[str, str]:
-        matched = [e for e in self.db.matched() if e.id not in self._given_up]
+        matched = self.goal_candidates()
         if self._explored and not matched:
             if self.cfg.variant == "gaussnav":
                 for e in self.db:
-                    if e.n_nvsm == 0:
+                    if e.n_nvsm == 0 and self._matching_can_decide(e):
                         self._run_nvsm(e.id)
-                matched = self.db.matched()
+                matched = self.goal_candidates()
             if not matched:
                 # everything is explored and nothing passed tau_m: the goal-class object with the
                 # most matches (then the most similar appearance) is still a better bet than
                 # stopping where the robot is
                 cands = [e for e in self.db if e.id not in self._given_up]
                 if cands:
-                    best = max(cands, key=lambda e: (e.e_max, self.appearance.get(e.id, -1.0)))
-                    best.matched = True
+                    best = max(cands, key=lambda e: (e.appearance, e.e_max, self.appearance.get(e.id, -1.0)))
+                    self._fallback = best.id
                     matched = [best]
+        verifying = False
+        if not matched:
+            matched = self._promising()
+            verifying = bool(matched)
         if matched:
             e = matched[0]
             self.target_entry = e.id
@@ -362,6 +485,8 @@ class SplatSearchAgent:
             except Exception:  # noqa: BLE001 - the path is for display only
                 self.path_xy = np.zeros((0, 2))
             if plan.status in ("reached", "closest"):
+                if verifying:
+                    return self._look_at(pose, e)
                 return "stop", "goal_reached"
             if np.isfinite(plan.distance) and self._goal_stalled(e.id, plan.distance):
                 self._given_up.add(e.id)  # no progress for a long while: try the next candidate
@@ -371,13 +496,28 @@ class SplatSearchAgent:
                     self._given_up.add(e.id)  # no way to it on the map: try the next candidate
                     return "turn_left", "unreachable_goal"
                 return self._explore(pose, "exploring_to_goal")  # the way to it is not mapped yet
-            return plan.action, "to_goal"
+            return plan.action, "to_candidate" if verifying else "to_goal"
         if after_exploring:
             return "stop", "explored"
         inspect = self._inspect(pose)
         if inspect is not None:
             return inspect
         return self._explore(pose, "exploring")
+
+    def _look_at(self, pose, e) -> tuple[str, str]:
+        """Next to an unconfirmed candidate: turn toward it so the next frames see it, and give it
+        up after ``verify_steps`` steps there without confirming it."""
+        if self._verify is None or self._verify[0] != e.id:
+            self._verify = (e.id, self.frame_index)
+        to = e.centroid[:2] - pose[:2]
+        err = (np.arctan2(to[1], to[0]) - pose[2] + np.pi) % (2 * np.pi) - np.pi
+        if self.frame_index - self._verify[1] >= self.cfg.verify_steps:
+            self._given_up.add(e.id)
+            return "turn_left", "not_the_goal"
+        if abs(err) > np.radians(20):
+            return ("turn_left" if err > 0 else "turn_right"), "verifying"
+        # facing it: wait for the next frames by looking left and right of it in turn
+        return ("turn_left" if (self.frame_index - self._verify[1]) % 2 else "turn_right"), "verifying"
 
     def _goal_stalled(self, entry_id: int, distance: float) -> bool:
         """True when the geodesic distance to goal entry ``entry_id`` has not dropped by 0.1 m in
@@ -399,7 +539,7 @@ class SplatSearchAgent:
             return None
         planner = self.explorer.planner()
         if self._inspecting is None:
-            todo = [e for e in self.db if not (e.id in self._inspected or e.id in self._given_up or e.matched)]
+            todo = [e for e in self.db if not (e.id in self._inspected or e.id in self._given_up or self.is_goal(e))]
             if not todo:
                 return None
             D = planner.distance_from(pose[:2])  # one FMM for all candidates
@@ -445,12 +585,17 @@ class SplatSearchAgent:
                 n = self._match_detection(self._last_obs[0], d.mask)
                 if n > max(e.e_max, 0):
                     self.db.record_match(e.id, float(n), 0, cfg.tau_m)
-        if e.matched:
+        if self.is_goal(e):
             return self._decide(pose)
         return None
 
     def _explore(self, pose, label: str) -> tuple[str, str]:
         cents, scores = self.db.scores()
+        if self._goal_sig is not None:
+            # eq 20 in match units: an object that looks like the goal draws the robot to the
+            # frontiers around it as a tau_m match would
+            app = np.array([max(e.appearance, 0.0) for e in self.db])
+            scores = np.maximum(scores, self.cfg.tau_m * app / max(self.cfg.tau_a, 1e-6)) if len(app) else scores
         objs = [ObjectScore(c[:2], s) for c, s in zip(cents, scores)]
         d = self.explorer.act(pose, objs)
         self.last_decision = d

@@ -270,7 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--episodes", type=int, default=50)
     e.add_argument("--seed", type=int, default=0, help="evaluation seed (selects the houses)")
     e.add_argument("--workers", type=int, default=1, help="parallel worker processes")
-    e.add_argument("--variants", default=None, help=f"comma-separated subset of {','.join(VARIANTS)}")
+    e.add_argument("--variants", default=None,
+                   help=f"comma-separated subset of {','.join(VARIANTS)} (default: the first five)")
     e.add_argument("--max-steps", type=int, default=None)
     e.add_argument("--out", default="runs/eval")
     e.set_defaults(func=_cmd_eval)

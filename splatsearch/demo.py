@@ -61,7 +61,7 @@ class ViewerBridge:
             chosen = next((i for i, f in enumerate(fr) if f is agent.last_decision.target), None)
         v.set_frontiers(np.array([f.waypoint_xy for f in fr]).reshape(-1, 2), chosen)
         v.set_objects([{"centroid": e.centroid, "extent": (e.bbox_max - e.bbox_min) if e.bbox_min is not None
-                        else (0.4, 0.4, 0.4), "label": e.label, "score": max(e.e_max, 0), "matched": e.matched}
+                        else (0.4, 0.4, 0.4), "label": e.label, "score": max(e.e_max, 0), "matched": agent.is_goal(e)}
                        for e in agent.db])
         if "map" in info.timings and agent.mapper.map.n_active:
             v.set_gaussian_map(agent.mapper.map)

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Callable
-
-import numpy as np
 
 from splatsearch.agent import AgentConfig, SplatSearchAgent, StepInfo
 from splatsearch.sim.env import HouseEnv
-from splatsearch.sim.episodes import Episode, EpisodeJudge, goal_image, house_for_episode, spl
+from splatsearch.sim.episodes import (
+    Episode,
+    EpisodeJudge,
+    goal_image,
+    house_for_episode,
+    spl,
+)
 
 
 @dataclass
@@ -53,9 +57,11 @@ def run_episode(ep: Episode, config: AgentConfig | None = None, *, env: HouseEnv
     if obj is None:
         raise ValueError(f"the episode's goal instance {ep.goal_instance_id} is not in the given house")
     judge = EpisodeJudge(env.nav, obj, ep.success_distance)
-    goal = goal_image(env, ep).rgb
+    goal_frame = goal_image(env, ep)
     obs = env.reset(ep.start)
-    agent = SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, obs.pose, config=config)
+    # the goal frame goes to the detector only (its class masks, as a detector run on the goal image)
+    agent = SplatSearchAgent(env.K, env.width, env.height, goal_frame.rgb, ep.goal_class, obs.pose, config=config,
+                             goal_frame=goal_frame)
     cap = min(ep.max_steps, max_steps or ep.max_steps)
     traj = [obs.gt_pose.tolist()]
     info = StepInfo("none", "start")

@@ -14,7 +14,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
-from splatsearch.agent import VARIANTS, AgentConfig
+from splatsearch.agent import EVAL_VARIANTS, VARIANTS, AgentConfig
 from splatsearch.io import atomic_write_bytes
 
 #: evaluation houses start here, away from the seeds 0..99 used while developing
@@ -92,7 +92,7 @@ def markdown_table(summary: dict[str, dict], title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIANTS, workers: int = 1,
+def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_VARIANTS, workers: int = 1,
              out: str | None = None, max_steps: int | None = None, progress=None) -> tuple[list[dict], dict]:
     """Run every variant on the same ``n`` episodes. Returns (per-episode results, summary).
 

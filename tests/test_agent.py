@@ -61,7 +61,7 @@ def test_summary_and_table():
 
 
 def test_evaluate_writes_results(tmp_path):
-    results, summary = evaluate("val", 1, seed=0, variants=("nearest_frontier",), out=str(tmp_path), max_steps=4)
+    results, _ = evaluate("val", 1, seed=0, variants=("nearest_frontier",), out=str(tmp_path), max_steps=4)
     assert len(results) == 1 and results[0]["steps"] == 4
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["summary"]["nearest_frontier"]["n"] == 1
@@ -142,3 +142,53 @@ def test_agent_keeps_a_matched_goal_while_the_way_to_it_is_unmapped(episode):
     statuses = [agent._decide(pose)[1] for _ in range(10)]
     assert res.entry_id not in agent._given_up  # ten unreachable steps do not count as stalling
     assert "stuck_goal" not in statuses
+
+
+def test_appearance_decides_which_objects_are_the_goal(episode):
+    ep, env = episode
+    from splatsearch.sim.episodes import goal_image
+
+    gf = goal_image(env, ep)
+    agent = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, goal_frame=gf)
+    assert agent._goal_sig is not None  # the detector found the goal object in the goal image
+    db, c = agent.db, np.asarray(ep.start, float)
+    look = db.add(ep.goal_class, [c[0] + 2, c[1], 0.5], c).entry_id  # looks like the goal
+    other = db.add(ep.goal_class, [c[0] - 2, c[1], 0.5], c).entry_id  # another instance's colours
+    for _ in range(2):
+        db.record_appearance(look, 0.6, 1.0)
+        db.record_appearance(other, 0.05, 1.0)
+    db.record_match(other, 40.0, 0, agent.cfg.tau_m)  # a feature-match false positive
+    assert agent.is_goal(db[look]) and not agent.is_goal(db[other])  # colours veto the match
+    assert [e.id for e in agent.goal_candidates()] == [look]
+    # matching could change neither decision, so neither object is matched or rendered any more
+    assert not agent._matching_can_decide(db[look]) and not agent._matching_can_decide(db[other])
+    one = db.add(ep.goal_class, [c[0], c[1] + 3, 0.5], c).entry_id
+    db.record_appearance(one, 0.9, 1.0)  # one view is not enough to confirm ...
+    assert not agent.is_goal(db[one]) and agent._matching_can_decide(db[one])
+    db.record_match(one, 40.0, 0, agent.cfg.tau_m)  # ... but it does not veto a feature match
+    assert agent.is_goal(db[one])
+    # gaussnav decides only after exploring
+    gn = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, goal_frame=gf,
+                          config=AgentConfig(variant="gaussnav"))
+    e = gn.db.add(ep.goal_class, [c[0] + 2, c[1], 0.5], c).entry_id
+    gn.db.record_appearance(e, 0.6, 1.0)
+    gn.db.record_appearance(e, 0.6, 1.0)
+    assert gn.goal_candidates() == []
+    gn._explored = True
+    assert [x.id for x in gn.goal_candidates()] == [e]
+
+
+def test_agent_without_a_goal_mask_falls_back_to_feature_matching(episode):
+    ep, env = episode
+    agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
+                             ep.start)  # no goal frame: the simulator detector cannot run on the goal image
+    assert agent._goal_sig is None
+    r = agent.db.add(ep.goal_class, [0.0, 0.0, 0.5], np.asarray(ep.start, float))
+    assert not agent.is_goal(agent.db[r.entry_id])
+    agent.db.record_match(r.entry_id, 40.0, 0, agent.cfg.tau_m)
+    assert agent.is_goal(agent.db[r.entry_id])
+    with pytest.raises(ValueError, match="goal_mask shape"):
+        SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
+                         ep.start, goal_mask=np.ones((10, 10), bool))
+    with pytest.raises(ValueError, match="tau_a"):
+        AgentConfig(tau_a=0.1, appearance_veto=0.2)

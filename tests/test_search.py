@@ -538,6 +538,7 @@ def test_nvsm_verification_ranks_the_goal_instance_first_on_real_maps(env):
 
 def test_clear_viewpoints_drop_cameras_behind_walls_or_over_unknown_space():
     from splatsearch.nav.grid import GridSpec
+
     from splatsearch.search.novel_views import clear_viewpoints
 
     spec = GridSpec((-5.0, -5.0), 0.1, (100, 100))
@@ -575,3 +576,60 @@ def test_verify_object_uses_given_cameras_and_checks_them():
     assert res.viewmats.shape == (2, 4, 4) and np.allclose(res.viewmats, vms[:2]) and res.images.shape[0] == 2
     with pytest.raises(ValueError, match="viewmats"):
         verify_object(goal, gmap, [0.0, 0.0, 0.0], K, 64, 48, viewmats=np.eye(4))
+
+
+# --------------------------------------------------------------------------------------------
+# instance appearance
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("a_id, b_id", [(47, 35), (48, 34)])  # house 0: two TVs, two sofas
+def test_color_appearance_separates_same_from_other_instance(env, a_id, b_id):
+    from splatsearch.search.appearance import AppearanceModel, ColorHistogramAppearance
+
+    m = ColorHistogramAppearance()
+    assert isinstance(m, AppearanceModel)
+    a, b = env.house.object(a_id), env.house.object(b_id)
+    fa1, fb = _front_view(env, a, -15, 1.8), _front_view(env, b, 0, 2.0)
+    # a second view of ``a`` 45 degrees round from the first, from farther away
+    fa2 = next(f for f in (_front_view(env, a, 30, 3.0), _front_view(env, a, -30, 2.5))
+               if (f.instance == a_id).sum() >= 500)
+    sig = [m.signature(f.rgb, f.instance == i) for f, i in ((fa1, a_id), (fa2, a_id), (fb, b_id))]
+    assert all(abs(s.sum() - 1.0) < 1e-4 for s in sig)
+    same, other = m.similarity(sig[0], sig[1]), m.similarity(sig[0], sig[2])
+    # the agent's defaults: tau_a 0.35 confirms, below 0.2 rules out
+    assert same >= 0.35 and other < 0.2, (same, other)
+    assert m.similarity(sig[0], sig[0]) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_appearance_bad_input_and_empty_mask():
+    from splatsearch.search.appearance import ColorHistogramAppearance, goal_object_mask
+
+    m = ColorHistogramAppearance()
+    rgb = np.random.default_rng(0).random((20, 30, 3)).astype(np.float32)
+    assert m.signature(rgb, np.zeros((20, 30), bool)).sum() == 0
+    with pytest.raises(ValueError, match="mask shape"):
+        m.signature(rgb, np.ones((20, 31), bool))
+    with pytest.raises(ValueError, match="rgb"):
+        m.signature(rgb[..., 0], np.ones((20, 30), bool))
+    with pytest.raises(ValueError, match="shapes differ"):
+        m.similarity(np.zeros(72), np.zeros(10))
+    with pytest.raises(ValueError, match="bins"):
+        ColorHistogramAppearance((0, 4))
+    big, small = np.zeros((20, 30), bool), np.zeros((20, 30), bool)
+    big[:10], small[15:, :3] = True, True
+    dets = [Detection(small, "chair", 1.0), Detection(big, "chair", 0.5), Detection(big | small, "bed", 1.0)]
+    assert goal_object_mask(dets, "chair") is big and goal_object_mask(dets, "sofa") is None
+
+
+def test_objectdb_record_appearance_keeps_a_weighted_mean():
+    db = ObjectDB()
+    r = db.add("chair", [1.0, 2.0, 0.4], (0.0, 0.0, 0.0))
+    assert db[r.entry_id].appearance == -1.0 and db[r.entry_id].app_views == 0
+    db.record_appearance(r.entry_id, 0.9, 0.1)  # a small, unreliable view
+    db.record_appearance(r.entry_id, 0.3, 0.9)
+    e = db[r.entry_id]
+    assert e.app_views == 2 and e.appearance == pytest.approx((0.09 + 0.27) / 1.0)
+    with pytest.raises(ValueError, match="similarity"):
+        db.record_appearance(r.entry_id, 1.5)
+    with pytest.raises(ValueError, match="weight"):
+        db.record_appearance(r.entry_id, 0.5, 0.0)
