@@ -5,13 +5,18 @@ One :meth:`SplatSearchAgent.act` call per simulator step:
 1. the exploration planner fuses depth into the occupancy grid and the goal-image cosine into the
    value map (eq 11-12);
 2. every ``map_every``-th frame the Gaussian mapper adds the frame (eq 3-10) at the mapping
-   resolution, and the detector's goal-class masks are lifted onto the Gaussians that render
-   them (the rasterizer's per-pixel top-contributor ids), then merged into the object DB (eq 13);
+   resolution; the detector's goal-class masks are lifted onto the Gaussians that render them
+   (the rasterizer's per-pixel top-contributor ids; between mapped frames, and wherever the ids
+   disagree with it, the masked depth), then merged into the object DB (eq 13), and each
+   detection's colours are compared with the goal object's (:mod:`splatsearch.search.appearance`);
 3. every object seen from ``f_O`` new viewpoints gets the NVSM: ``n_views`` hemisphere views
    rendered from the map, holes (alpha < tau) inpainted, and feature matches against the goal
-   image counted; e_max >= tau_m marks it as the goal (eq 18);
-4. with a matched object the agent follows the FMM path to it and stops within ``stop_margin`` of
-   its extent; otherwise it takes the eq 19/20 frontier.
+   image counted; e_max >= tau_m marks it as the goal (eq 18) unless its colours rule it out;
+   an object whose colours match over enough viewpoints is the goal without it, and the NVSM is
+   skipped for objects the colours already decide;
+4. with a goal object the agent follows the FMM path to it and stops within ``stop_margin`` of
+   its extent; with an object that looks like the goal from too few viewpoints it walks up to it
+   to confirm it; otherwise it takes the eq 19/20 frontier.
 
 Variants (the thesis' Table IV ablations): ``splatsearch`` (full), ``no_nvsm`` (match the raw
 observation of each detection instead of rendered views), ``no_inpaint``, ``nearest_frontier``

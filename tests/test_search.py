@@ -633,3 +633,19 @@ def test_objectdb_record_appearance_keeps_a_weighted_mean():
         db.record_appearance(r.entry_id, 1.5)
     with pytest.raises(ValueError, match="weight"):
         db.record_appearance(r.entry_id, 0.5, 0.0)
+
+
+def test_encoder_appearance_wraps_an_image_encoder(env):
+    from splatsearch.nav.encoders import ColorTextureEncoder
+    from splatsearch.search import AppearanceModel, EncoderAppearance
+
+    m = EncoderAppearance(ColorTextureEncoder())
+    assert isinstance(m, AppearanceModel)
+    a, b = env.house.object(47), env.house.object(35)
+    fa1, fa2, fb = _front_view(env, a, -15, 1.8), _front_view(env, a, 0, 2.4), _front_view(env, b, 0, 2.0)
+    s1, s2, sb = m.signature(fa1.rgb, fa1.instance == 47), m.signature(fa2.rgb, fa2.instance == 47), \
+        m.signature(fb.rgb, fb.instance == 35)
+    assert m.similarity(s1, s2) > m.similarity(s1, sb)
+    assert m.similarity(s1, m.signature(fa1.rgb, np.zeros((H, W), bool))) == 0.0
+    with pytest.raises(TypeError):
+        EncoderAppearance(object())

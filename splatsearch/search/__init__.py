@@ -9,9 +9,12 @@
 Modules: ``detection`` (Detector, Detection, SimDetector, UltralyticsDetector), ``objects``
 (mask lifting, ObjectDB of eq 13), ``novel_views`` (hemisphere cameras, map renders),
 ``inpainting`` (Inpainter, OpenCVInpainter, DiffusionInpainter), ``matching`` (Matcher,
-SIFTMatcher, LoFTRMatcher, best_view of eq 18), ``object_search`` (verify_object, ObjectSearch).
+SIFTMatcher, LoFTRMatcher, best_view of eq 18), ``appearance`` (AppearanceModel,
+ColorHistogramAppearance, EncoderAppearance: a detection's colours against the goal object's),
+``object_search`` (verify_object, ObjectSearch).
 """
 
+from .appearance import AppearanceModel, ColorHistogramAppearance, EncoderAppearance, goal_object_mask
 from .detection import (
     COCO_TO_GOAL,
     Detection,
@@ -50,7 +53,8 @@ from .objects import (
 )
 
 __all__ = [
-    "COCO_TO_GOAL", "DEFAULT_TAU_M", "AddResult", "BestView", "Detection", "Detector", "DiffusionInpainter",
+    "COCO_TO_GOAL", "DEFAULT_TAU_M", "AddResult", "AppearanceModel", "ColorHistogramAppearance",
+    "EncoderAppearance", "goal_object_mask", "BestView", "Detection", "Detector", "DiffusionInpainter",
     "Inpainter", "LiftedObject", "LoFTRMatcher", "Matcher", "NVSMConfig", "ObjectDB", "ObjectEntry", "NVSMResult",
     "ObjectSearch", "OpenCVInpainter", "SIFTMatcher", "SimDetector", "UltralyticsDetector", "backproject_mask",
     "best_view", "crop_box_for", "erode_mask", "hemisphere_viewpoints", "holes_from_alpha", "lift_mask_depth",

@@ -12,8 +12,9 @@ goal instance and <= 0.17 for every other instance; the best single view of a no
 reached 0.73, so one view is not enough. SIFT inliers on the same frames ranked the goal first
 in 4/10 episodes.
 
-A learned embedding (DINOv2 / CLIP features pooled over the mask) plugs in through
-:class:`AppearanceModel`.
+A learned embedding plugs in through :class:`AppearanceModel`; :class:`EncoderAppearance` wraps
+any :class:`~splatsearch.nav.encoders.ImageEncoder` (e.g. the OpenCLIP or transformers adapters,
+which load weights from a local path) over the masked object crop.
 """
 
 from __future__ import annotations
@@ -69,6 +70,47 @@ class ColorHistogramAppearance:
         if a.shape != b.shape:
             raise ValueError(f"signature shapes differ: {a.shape} vs {b.shape}")
         return float(np.minimum(a, b).sum())
+
+
+class EncoderAppearance:
+    """An :class:`~splatsearch.nav.encoders.ImageEncoder` over the object alone: the mask's bounding
+    box with everything outside the mask set to mid-grey, embedded; similarity is the cosine
+    mapped to [0, 1]. Args: encoder (``embed(rgb) -> (D,)``), min_size: the crop is padded to at
+    least this many pixels a side (encoders want more than a sliver)."""
+
+    def __init__(self, encoder, min_size: int = 32):
+        if not hasattr(encoder, "embed"):
+            raise TypeError("encoder must have an embed(rgb) method (an ImageEncoder)")
+        self.encoder, self.min_size = encoder, int(min_size)
+
+    def signature(self, rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """The encoder's embedding (D,) of the masked crop (zeros for an empty mask)."""
+        rgb = np.asarray(rgb, np.float32)
+        mask = np.asarray(mask, bool)
+        if rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise ValueError(f"rgb must have shape (H, W, 3), got {rgb.shape}")
+        if mask.shape != rgb.shape[:2]:
+            raise ValueError(f"mask shape {mask.shape} does not match rgb {rgb.shape[:2]}")
+        rows, cols = np.nonzero(mask)
+        if len(rows) == 0:
+            return np.zeros_like(np.asarray(self.encoder.embed(np.full((self.min_size,) * 2 + (3,), 0.5, np.float32))))
+        H, W = mask.shape
+        pr = max(0, (self.min_size - (np.ptp(rows) + 1) + 1) // 2)
+        pc = max(0, (self.min_size - (np.ptp(cols) + 1) + 1) // 2)
+        r0, r1 = max(0, rows.min() - pr), min(H, rows.max() + 1 + pr)
+        c0, c1 = max(0, cols.min() - pc), min(W, cols.max() + 1 + pc)
+        crop = np.where(mask[r0:r1, c0:c1, None], rgb[r0:r1, c0:c1], np.float32(0.5))
+        return np.asarray(self.encoder.embed(crop), np.float32)
+
+    def similarity(self, a: np.ndarray, b: np.ndarray) -> float:
+        """(cosine + 1) / 2 in [0, 1]; 0 when either signature is all zeros."""
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        if a.shape != b.shape:
+            raise ValueError(f"signature shapes differ: {a.shape} vs {b.shape}")
+        na, nb = np.linalg.norm(a), np.linalg.norm(b)
+        if na == 0 or nb == 0:
+            return 0.0
+        return float(np.clip((a @ b / (na * nb) + 1.0) / 2.0, 0.0, 1.0))
 
 
 def goal_object_mask(detections, goal_class: str) -> np.ndarray | None:
