@@ -637,6 +637,7 @@ def test_objectdb_record_appearance_keeps_a_weighted_mean():
 
 def test_encoder_appearance_wraps_an_image_encoder(env):
     from splatsearch.nav.encoders import ColorTextureEncoder
+
     from splatsearch.search import AppearanceModel, EncoderAppearance
 
     m = EncoderAppearance(ColorTextureEncoder())

@@ -14,7 +14,12 @@ ColorHistogramAppearance, EncoderAppearance: a detection's colours against the g
 ``object_search`` (verify_object, ObjectSearch).
 """
 
-from .appearance import AppearanceModel, ColorHistogramAppearance, EncoderAppearance, goal_object_mask
+from .appearance import (
+    AppearanceModel,
+    ColorHistogramAppearance,
+    EncoderAppearance,
+    goal_object_mask,
+)
 from .detection import (
     COCO_TO_GOAL,
     Detection,
@@ -53,10 +58,41 @@ from .objects import (
 )
 
 __all__ = [
-    "COCO_TO_GOAL", "DEFAULT_TAU_M", "AddResult", "AppearanceModel", "ColorHistogramAppearance",
-    "EncoderAppearance", "goal_object_mask", "BestView", "Detection", "Detector", "DiffusionInpainter",
-    "Inpainter", "LiftedObject", "LoFTRMatcher", "Matcher", "NVSMConfig", "ObjectDB", "ObjectEntry", "NVSMResult",
-    "ObjectSearch", "OpenCVInpainter", "SIFTMatcher", "SimDetector", "UltralyticsDetector", "backproject_mask",
-    "best_view", "crop_box_for", "erode_mask", "hemisphere_viewpoints", "holes_from_alpha", "lift_mask_depth",
-    "lift_mask_ids", "map_top_ids", "ransac_inliers", "render_novel_views", "split_holes", "verify_object",
+    "COCO_TO_GOAL",
+    "DEFAULT_TAU_M",
+    "AddResult",
+    "AppearanceModel",
+    "BestView",
+    "ColorHistogramAppearance",
+    "Detection",
+    "Detector",
+    "DiffusionInpainter",
+    "EncoderAppearance",
+    "Inpainter",
+    "LiftedObject",
+    "LoFTRMatcher",
+    "Matcher",
+    "NVSMConfig",
+    "NVSMResult",
+    "ObjectDB",
+    "ObjectEntry",
+    "ObjectSearch",
+    "OpenCVInpainter",
+    "SIFTMatcher",
+    "SimDetector",
+    "UltralyticsDetector",
+    "backproject_mask",
+    "best_view",
+    "crop_box_for",
+    "erode_mask",
+    "goal_object_mask",
+    "hemisphere_viewpoints",
+    "holes_from_alpha",
+    "lift_mask_depth",
+    "lift_mask_ids",
+    "map_top_ids",
+    "ransac_inliers",
+    "render_novel_views",
+    "split_holes",
+    "verify_object",
 ]
