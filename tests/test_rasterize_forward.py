@@ -1,5 +1,7 @@
 """Forward pass of the Warp rasterizer against the dense float64 JAX reference."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,12 +19,22 @@ def _ref(params, vm, K, **kw):
     return reference.rasterize_dense(*p64, jnp.asarray(vm, jnp.float64), jnp.asarray(K, jnp.float64), W, H, **kw)
 
 
+@functools.cache
+def _ref_scene(kind):
+    """The reference render of scene ``kind``, jitted (one XLA program compiles far faster than
+    the eager op-by-op dense reference) and shared by both rasterizer variants."""
+    params = scenes.scene(kind)
+    vm, K = scenes.camera()
+    p64 = [jnp.asarray(a, jnp.float64) for a in (*params, vm, K)]
+    return jax.jit(lambda *a: reference.rasterize_dense(*a, W, H))(*p64)
+
+
 @pytest.mark.parametrize("kind", scenes.KINDS)
 def test_forward_matches_dense_reference(kind, variant):
     params = scenes.scene(kind)
     vm, K = scenes.camera()
     out = splatsearch.rasterize(*params, vm, K, W, H, render_mode="RGB+D")
-    color, depth, alpha, radii = _ref(params, vm, K)
+    color, depth, alpha, radii = _ref_scene(kind)
     np.testing.assert_allclose(np.asarray(out.image), np.asarray(color), atol=1e-5, rtol=0)
     np.testing.assert_allclose(np.asarray(out.alpha), np.asarray(alpha), atol=1e-5, rtol=0)
     # depth is in metres (~3 m here): same relative precision as the colours
