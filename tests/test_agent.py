@@ -192,3 +192,37 @@ def test_agent_without_a_goal_mask_falls_back_to_feature_matching(episode):
                          ep.start, goal_mask=np.ones((10, 10), bool))
     with pytest.raises(ValueError, match="tau_a"):
         AgentConfig(tau_a=0.1, appearance_veto=0.2)
+
+
+def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
+    from splatsearch.nav.fmm import Plan
+    from splatsearch.sim.episodes import goal_image
+
+    ep, env = episode
+    gf = goal_image(env, ep)
+    agent = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, goal_frame=gf,
+                             config=AgentConfig(verify_steps=4))
+    c = np.asarray(ep.start, float)
+    e = agent.db.add(ep.goal_class, [c[0] + 3.0, c[1], 0.5], c).entry_id
+    agent.db.record_appearance(e, 0.9, 1.0)  # looks like the goal, but from one viewpoint only
+    assert agent.goal_candidates() == [] and [x.id for x in agent._promising()] == [e]
+
+    class Planner:
+        status = "moving"
+
+        def plan(self, *a, **k):
+            return Plan("move_forward", self.status, 3.0 if self.status == "moving" else 0.0)
+
+        def path(self, *a, **k):
+            return np.zeros((0, 2))
+
+    planner = Planner()
+    agent.explorer.planner = lambda: planner
+    assert agent._decide(c) == ("move_forward", "to_candidate")
+    planner.status = "reached"  # there: it turns to look but never stops at an unconfirmed object
+    statuses = []
+    for _ in range(6):
+        statuses.append(agent._decide(c)[1])
+        agent.frame_index += 1
+    assert statuses[:4] == ["verifying"] * 4 and statuses[4] == "not_the_goal"
+    assert e in agent._given_up and agent._promising() == []
