@@ -64,31 +64,46 @@ def _run_one(args):
     from splatsearch.episode import run_episode
     from splatsearch.sim.episodes import Episode
 
-    r = run_episode(Episode.from_json(ep_json), AgentConfig(variant=variant), max_steps=max_steps)
+    ep = Episode.from_json(ep_json)
+    t0 = time.perf_counter()
+    try:
+        r = run_episode(ep, AgentConfig(variant=variant), max_steps=max_steps)
+    except Exception as e:  # noqa: BLE001 - one broken episode must not end the whole evaluation
+        import traceback
+
+        return {"episode_id": ep.episode_id, "house_seed": ep.house_seed, "variant": variant, "success": False,
+                "spl": 0.0, "steps": 0, "wall_time": time.perf_counter() - t0, "status": "error",
+                "error": "".join(traceback.format_exception_only(type(e), e)).strip()}
     d = r.to_json()
     d.pop("trajectory")
     return d
 
 
 def summarise(results: list[dict]) -> dict[str, dict]:
-    """Per variant: n, SR, SPL, mean steps, median and mean wall time (s)."""
+    """Per variant: n, SR, SPL, mean steps, median and mean wall time (s), errors.
+
+    An episode that raised (``"error"`` in its result) counts as a failure in SR and SPL, and is
+    left out of the step and wall-time statistics.
+    """
     out = {}
     for v in dict.fromkeys(r["variant"] for r in results):
         rs = [r for r in results if r["variant"] == v]
+        ran = [r for r in rs if "error" not in r] or [{"steps": np.nan, "wall_time": np.nan}]
         out[v] = {"n": len(rs), "SR": float(np.mean([r["success"] for r in rs])),
-                  "SPL": float(np.mean([r["spl"] for r in rs])), "steps": float(np.mean([r["steps"] for r in rs])),
-                  "median_wall_s": float(np.median([r["wall_time"] for r in rs])),
-                  "mean_wall_s": float(np.mean([r["wall_time"] for r in rs]))}
+                  "SPL": float(np.mean([r["spl"] for r in rs])), "steps": float(np.mean([r["steps"] for r in ran])),
+                  "median_wall_s": float(np.median([r["wall_time"] for r in ran])),
+                  "mean_wall_s": float(np.mean([r["wall_time"] for r in ran])),
+                  "errors": len(rs) - len([r for r in rs if "error" not in r])}
     return out
 
 
 def markdown_table(summary: dict[str, dict], title: str) -> str:
     """The summary as a markdown table."""
-    lines = [f"### {title}", "", "| method | episodes | SR | SPL | mean steps | median wall s |",
-             "|---|---|---|---|---|---|"]
+    lines = [f"### {title}", "", "| method | episodes | SR | SPL | mean steps | median wall s | errors |",
+             "|---|---|---|---|---|---|---|"]
     for v, s in summary.items():
         lines.append(f"| {v} | {s['n']} | {s['SR']:.3f} | {s['SPL']:.3f} | {s['steps']:.0f} | "
-                     f"{s['median_wall_s']:.1f} |")
+                     f"{s['median_wall_s']:.1f} | {s.get('errors', 0)} |")
     return "\n".join(lines) + "\n"
 
 

@@ -51,12 +51,15 @@ def test_agent_rejects_bad_goal_class(episode):
 def test_summary_and_table():
     rs = [{"variant": "a", "success": True, "spl": 0.5, "steps": 10, "wall_time": 2.0},
           {"variant": "a", "success": False, "spl": 0.0, "steps": 30, "wall_time": 4.0},
-          {"variant": "b", "success": True, "spl": 1.0, "steps": 5, "wall_time": 1.0}]
+          {"variant": "b", "success": True, "spl": 1.0, "steps": 5, "wall_time": 1.0},
+          {"variant": "b", "success": False, "spl": 0.0, "steps": 0, "wall_time": 0.1, "error": "ValueError: x"}]
     s = summarise(rs)
-    assert s["a"] == {"n": 2, "SR": 0.5, "SPL": 0.25, "steps": 20.0, "median_wall_s": 3.0, "mean_wall_s": 3.0}
-    assert s["b"]["SR"] == 1.0
+    assert s["a"] == {"n": 2, "SR": 0.5, "SPL": 0.25, "steps": 20.0, "median_wall_s": 3.0, "mean_wall_s": 3.0,
+                      "errors": 0}
+    # an episode that raised is a failure, and stays out of the step and time statistics
+    assert s["b"]["SR"] == 0.5 and s["b"]["errors"] == 1 and s["b"]["steps"] == 5.0 and s["b"]["median_wall_s"] == 1.0
     md = markdown_table(s, "t")
-    assert "| a | 2 | 0.500 | 0.250 | 20 | 3.0 |" in md
+    assert "| a | 2 | 0.500 | 0.250 | 20 | 3.0 | 0 |" in md
     assert house_seeds(0, 2) == [1000, 1001] and house_seeds(1, 1) == [1100]
 
 
@@ -196,6 +199,7 @@ def test_agent_without_a_goal_mask_falls_back_to_feature_matching(episode):
 
 def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
     from splatsearch.nav.fmm import Plan
+
     from splatsearch.sim.episodes import goal_image
 
     ep, env = episode

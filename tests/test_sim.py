@@ -376,3 +376,20 @@ def test_surface_detail_gives_feature_matching_texture(house, env):
     assert n_keypoints(rich.rgb) > 2 * n_keypoints(flat.rgb)
     with pytest.raises(ValueError, match="detail"):
         sim.raycast.HouseRenderer(house, detail=1.5)
+
+
+def test_replay_of_a_house_whose_layout_merged_rooms():
+    """House 62 draws 8 rooms and its layout keeps 7: an episode stores 7, and make_house(62, 7)
+    is another house, so the replay must rebuild from the seed alone (house 1005 of the first
+    val-hard evaluation broke this way)."""
+    house = sim.make_house(62)
+    other = sim.make_house(62, len(house.rooms))
+    assert not np.array_equal(other.vertices, house.vertices)  # the trap itself
+    ep = sim.Episode.from_json(dict(sim.make_episodes(house, 1, "val", seed=0)[0].to_json()))
+    rebuilt = sim.house_for_episode(ep)
+    np.testing.assert_array_equal(rebuilt.vertices, house.vertices)
+    # a house built with an explicit room count still comes back
+    h5 = sim.make_house(3, 5)
+    assert len(h5.rooms) == 5
+    ep5 = sim.make_episodes(h5, 1, "val", seed=0)[0]
+    np.testing.assert_array_equal(sim.house_for_episode(ep5).vertices, h5.vertices)
