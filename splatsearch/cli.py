@@ -86,7 +86,13 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
     import numpy as np
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeRemainingColumn,
+    )
 
     from splatsearch import datasets, io
     from splatsearch.mapper import Mapper, MapperConfig
@@ -144,7 +150,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+    )
 
     from splatsearch.evaluation import evaluate, markdown_table
 
@@ -164,7 +176,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
         kw = {} if variants is None else {"variants": variants}
         _, summary = evaluate(args.split, args.episodes, args.seed, workers=args.workers, out=args.out,
-                              max_steps=args.max_steps, progress=progress, **kw)
+                              max_steps=args.max_steps, progress=progress, resume=args.resume, **kw)
     console.print(markdown_table(summary, f"{args.split}, {args.episodes} episodes, seed {args.seed}"))
     console.print(f"wrote {args.out}/results.json, summary.json, summary.md")
     return 0
@@ -273,6 +285,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--variants", default=None,
                    help=f"comma-separated subset of {','.join(VARIANTS)} (default: the first five)")
     e.add_argument("--max-steps", type=int, default=None)
+    e.add_argument("--resume", action="store_true",
+                   help="keep the finished episodes in OUT/results.json and run only the missing ones")
     e.add_argument("--out", default="runs/eval")
     e.set_defaults(func=_cmd_eval)
 

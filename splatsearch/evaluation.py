@@ -108,11 +108,14 @@ def markdown_table(summary: dict[str, dict], title: str) -> str:
 
 
 def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_VARIANTS, workers: int = 1,
-             out: str | None = None, max_steps: int | None = None, progress=None) -> tuple[list[dict], dict]:
+             out: str | None = None, max_steps: int | None = None, progress=None,
+             resume: bool = False) -> tuple[list[dict], dict]:
     """Run every variant on the same ``n`` episodes. Returns (per-episode results, summary).
 
     Results are saved after every finished episode to ``out/results.json`` (so a crash or Ctrl-C
-    keeps them) and the summary to ``out/summary.json`` and ``out/summary.md``.
+    keeps them) and the summary to ``out/summary.json`` and ``out/summary.md``. ``resume`` keeps
+    the results already in ``out/results.json`` (episode id, house and variant must match this
+    run's episodes) and runs only the missing ones.
     """
     bad = [v for v in variants if v not in VARIANTS]
     if bad:
@@ -121,8 +124,19 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_
         raise ValueError(f"workers must be >= 1, got {workers}")
     eps = make_eval_episodes(split, n, seed)
     # episode-major: an interrupted run still holds every variant on the same first episodes
-    jobs = [(e.to_json(), v, max_steps) for e in eps for v in variants]
     results: list[dict] = []
+    if resume:
+        if not out:
+            raise ValueError("resume needs out (the folder with results.json)")
+        path = os.path.join(out, "results.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                old = json.load(f)
+            houses = {e.episode_id: e.house_seed for e in eps}
+            results = [r for r in old if r.get("variant") in variants and houses.get(r.get("episode_id")) == r.get("house_seed")
+                       and "error" not in r]
+    done = {(r["episode_id"], r["variant"]) for r in results}
+    jobs = [(e.to_json(), v, max_steps) for e in eps for v in variants if (e.episode_id, v) not in done]
     t0 = time.perf_counter()
 
     def save():
@@ -130,12 +144,13 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_
             os.makedirs(out, exist_ok=True)
             atomic_write_bytes(os.path.join(out, "results.json"), json.dumps(results, indent=1).encode())
 
+    total = len(results) + len(jobs)
     if workers == 1:
         for j in jobs:
             results.append(_run_one(j))
             save()
             if progress:
-                progress(results[-1], len(results), len(jobs))
+                progress(results[-1], len(results), total)
     else:
         import multiprocessing as mp
 
@@ -149,7 +164,7 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_
                 results.append(f.result())
                 save()
                 if progress:
-                    progress(results[-1], len(results), len(jobs))
+                    progress(results[-1], len(results), total)
     summary = summarise(results)
     if out:
         meta = {"split": split, "episodes": n, "seed": seed, "house_seeds": sorted({e.house_seed for e in eps}),

@@ -71,6 +71,13 @@ def test_evaluate_writes_results(tmp_path):
     assert (tmp_path / "summary.md").read_text().startswith("### val")
     with pytest.raises(ValueError):
         evaluate("val", 1, variants=("nope",))
+    # resume keeps the finished episode and runs only the missing variant
+    again, summary = evaluate("val", 1, seed=0, variants=("nearest_frontier", "no_nvsm"), out=str(tmp_path),
+                              max_steps=4, resume=True)
+    assert len(again) == 2 and again[0] == results[0] and again[1]["variant"] == "no_nvsm"
+    assert summary["no_nvsm"]["n"] == 1
+    with pytest.raises(ValueError, match="resume"):
+        evaluate("val", 1, resume=True)
 
 
 @pytest.mark.slow
