@@ -103,7 +103,9 @@ class ExplorationConfig:
     min_pocket_area (m^2), min_frontier_cells, reach_tolerance (m): frontier extraction.
     arrive_radius: m from the waypoint at which a frontier counts as visited.
     initial_turns: turns in place before the first move (12 x 30 deg = a full look around).
-    stuck_steps: steps without getting 0.1 m closer before the target is blacklisted.
+    stuck_steps: steps without getting 0.1 m closer before the target is blacklisted. Also: steps
+        in which the robot stays within 0.5 m of one spot while exploring before the frontier it
+        is heading for is blacklisted, whichever targets it switched between meanwhile.
     max_look_turns: turns spent facing a frontier's unknown side on arrival before blacklisting it.
     blacklist_radius: frontiers whose waypoint lies this close to a blacklisted one are skipped.
     switch_margin: utility a new frontier must win by to replace the current target.
@@ -186,6 +188,9 @@ class ExplorationPlanner:
         self._best_dist = np.inf
         self._since_progress = 0
         self._look_turns = 0
+        self._optimistic_planner: FMMPlanner | None = None
+        self._anchor_xy: np.ndarray | None = None
+        self._still_steps = 0
         self._last_action: str | None = None
         self._last_pose: np.ndarray | None = None
 
@@ -264,6 +269,18 @@ class ExplorationPlanner:
             for f in extra:
                 f.info["squeeze"] = True
             kept += extra
+        self._optimistic_planner = None
+        if not kept and fs and not cfg.unknown_is_free:
+            # nothing reachable over seen-free space, yet frontiers remain: a doorway seen at a
+            # grazing angle leaves a free strip narrower than the robot. Plan through unknown
+            # cells to get close enough to see it (dev house 16 declared itself explored after
+            # 57 steps with three rooms unvisited)
+            opt = FMMPlanner.from_occupancy(self.occupancy, True, forward_step=self.forward_step,
+                                            turn_deg=self.turn_deg)
+            kept = attach_distances(fs, opt.distance_from(pose[:2]), self.spec, cfg.reach_tolerance)
+            for f in kept:
+                f.info["optimistic"] = True
+            self._optimistic_planner = opt
         fs = [f for f in kept if not self._blacklisted(f.waypoint_xy)]
         if not fs:
             return []
@@ -289,6 +306,16 @@ class ExplorationPlanner:
             self._turns_left -= 1
             return self._done(Decision("turn_left", "look_around"))
         cfg = self.config
+        # two frontiers whose utilities swap as the robot turns (the value map changes with its
+        # heading) reset the per-target progress count at every switch: dev house 29 turned left
+        # and right on one spot for 600 steps. Count the steps spent on one spot instead.
+        if self._anchor_xy is None or np.hypot(*(pose[:2] - self._anchor_xy)) > 0.5:
+            self._anchor_xy, self._still_steps = pose[:2].copy(), 0
+        else:
+            self._still_steps += 1
+        if self._still_steps > cfg.stuck_steps + cfg.max_look_turns and self._target is not None:
+            self._ban(self._target)
+            self._still_steps = 0
         planner = self.planner()
         fs = self.frontiers(pose, objects, planner)
         for _ in range(8):  # a few re-selections after blacklisting, then give up for this step
@@ -297,7 +324,8 @@ class ExplorationPlanner:
                 self._target = None
                 return self._done(Decision("stop", "explored"))
             target = self._select(fs)
-            plan = planner.plan(pose, target.waypoint_xy, cfg.arrive_radius)
+            pl = self._optimistic_planner if target.info.get("optimistic") and self._optimistic_planner else planner
+            plan = pl.plan(pose, target.waypoint_xy, cfg.arrive_radius)
             if plan.status in ("reached", "closest"):
                 # arrived, but the frontier is still there: the unknown side may be out of view
                 # (the robot arrives facing along its path), so turn to face it before giving up

@@ -154,7 +154,7 @@ class AgentConfig:
     identify_every_frame: bool = True
     verify_steps: int = 6
     appearance: bool = True
-    tau_a: float = 0.35
+    tau_a: float = 0.45
     appearance_min_views: int = 2
     appearance_veto: float = 0.2
     appearance_full_px: int = 3000

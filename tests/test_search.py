@@ -596,8 +596,10 @@ def test_color_appearance_separates_same_from_other_instance(env, a_id, b_id):
     sig = [m.signature(f.rgb, f.instance == i) for f, i in ((fa1, a_id), (fa2, a_id), (fb, b_id))]
     assert all(abs(s.sum() - 1.0) < 1e-4 for s in sig)
     same, other = m.similarity(sig[0], sig[1]), m.similarity(sig[0], sig[2])
-    # the agent's defaults: tau_a 0.35 confirms, below 0.2 rules out
-    assert same >= 0.35 and other < 0.2, (same, other)
+    # the agent's defaults: tau_a confirms, below the veto rules out
+    from splatsearch.agent import AgentConfig
+
+    assert same >= AgentConfig().tau_a and other < AgentConfig().appearance_veto, (same, other)
     assert m.similarity(sig[0], sig[0]) == pytest.approx(1.0, abs=1e-5)
 
 
