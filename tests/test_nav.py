@@ -927,3 +927,30 @@ def test_alpha_only_exploration_covers_the_house(seed):
     cov, steps = _explore(seed)
     print(f"house {seed}: coverage {cov:.3f} after {steps} steps")
     assert steps <= 1000 and cov >= 0.90
+
+
+def test_exploration_plans_through_unknown_when_no_frontier_is_reachable():
+    """A corridor with an unseen patch across it (too small to be a frontier itself: a pocket)
+    between the robot and its open far end: nothing is reachable over seen-free space, so the far
+    frontier is planned to through the unknown cells."""
+    spec, ep, pose = _corridor_planner(ExplorationConfig(initial_turns=0))
+    st = ep.occupancy.state
+    st[12:48, 100:110] = UNKNOWN  # 0.5 m x 1.8 m, under the 1.5 m^2 pocket area
+    st[12:48, 20:22] = OCCUPIED  # close the near end: its frontier is gone
+    fs = ep.frontiers(pose)
+    assert len(fs) >= 1 and all(f.info.get("optimistic") for f in fs)
+    d = ep.act(pose)
+    assert d.status == "exploring" and d.target is not None and d.target.waypoint_xy[0] > 5.0
+    # with a wide-open corridor the usual (seen-free) planning applies
+    _, ep2, pose2 = _corridor_planner(ExplorationConfig(initial_turns=0))
+    assert not any(f.info.get("optimistic") for f in ep2.frontiers(pose2))
+
+
+def test_exploration_blacklists_a_target_while_the_robot_stays_on_one_spot():
+    cfg = ExplorationConfig(initial_turns=0, stuck_steps=5, max_look_turns=2)
+    _, ep, pose = _corridor_planner(cfg)
+    first = ep.act(pose).target
+    for _ in range(cfg.stuck_steps + cfg.max_look_turns + 1):  # the robot never moves
+        ep._since_progress = 0  # as a switch between two targets resets it
+        ep.act(pose)
+    assert any(np.hypot(*(b - first.waypoint_xy)) < 1e-9 for b in ep.blacklist)
