@@ -60,6 +60,7 @@ from splatsearch.search.novel_views import clear_viewpoints, hemisphere_viewpoin
 from splatsearch.search.object_search import NVSMConfig, verify_object
 from splatsearch.search.objects import (
     ObjectDB,
+    ObjectEntry,
     lift_mask_depth,
     lift_mask_ids,
     map_top_ids,
@@ -391,23 +392,27 @@ class SplatSearchAgent:
         ``e``: not when its appearance already rules it out or already confirms it."""
         return not (self._appearance_rules_out(e) or self._appearance_says_goal(e))
 
-    def is_goal(self, e) -> bool:
+    def _identifies_now(self) -> bool:
+        """gaussnav identifies only once it has explored everything; the others all along."""
+        return self.cfg.variant != "gaussnav" or self._explored
+
+    def is_goal(self, e: ObjectEntry) -> bool:
         """Whether entry ``e`` is taken for the goal: its appearance confirms it, or it passed
         tau_m (eq 18) and its appearance does not rule it out."""
         return self._appearance_says_goal(e) or (e.matched and not self._appearance_rules_out(e))
 
-    def goal_candidates(self) -> list:
+    def goal_candidates(self) -> list[ObjectEntry]:
         """Entries taken for the goal and not given up, most likely first (appearance, then
         e_max). gaussnav identifies only once it has explored everything."""
-        if self.cfg.variant == "gaussnav" and not self._explored:
+        if not self._identifies_now():
             return []
         out = [e for e in self.db if e.id not in self._given_up and (self.is_goal(e) or e.id == self._fallback)]
         return sorted(out, key=lambda e: (-e.appearance, -e.e_max))
 
-    def _promising(self) -> list:
+    def _promising(self) -> list[ObjectEntry]:
         """Entries whose appearance reaches tau_a from too few viewpoints to confirm them, most
         similar first: the agent walks up to them to see them again."""
-        if self._goal_sig is None or (self.cfg.variant == "gaussnav" and not self._explored):
+        if self._goal_sig is None or not self._identifies_now():
             return []
         out = [e for e in self.db if e.id not in self._given_up and not self.is_goal(e)
                and e.appearance >= self.cfg.tau_a]
@@ -514,8 +519,7 @@ class SplatSearchAgent:
         up after ``verify_steps`` steps there without confirming it."""
         if self._verify is None or self._verify[0] != e.id:
             self._verify = (e.id, self.frame_index)
-        to = e.centroid[:2] - pose[:2]
-        err = (np.arctan2(to[1], to[0]) - pose[2] + np.pi) % (2 * np.pi) - np.pi
+        err = _bearing_error(pose, e.centroid)
         if self.frame_index - self._verify[1] >= self.cfg.verify_steps:
             self._given_up.add(e.id)
             return "turn_left", "not_the_goal"
@@ -573,8 +577,7 @@ class SplatSearchAgent:
                 self.path_xy = np.zeros((0, 2))
             return plan.action, "inspecting"
         # there: turn until the object is ahead, then verify it with this close view
-        to = e.centroid[:2] - pose[:2]
-        err = (np.arctan2(to[1], to[0]) - pose[2] + np.pi) % (2 * np.pi) - np.pi
+        err = _bearing_error(pose, e.centroid)
         if abs(err) > np.radians(20) and self.frame_index - self._inspect_start <= cfg.inspect_steps:
             return ("turn_left" if err > 0 else "turn_right"), "inspecting"
         self._inspected.add(e.id)
@@ -610,6 +613,13 @@ class SplatSearchAgent:
             self._explored = True
             return self._decide(pose, after_exploring=True)
         return d.action, label if d.status == "exploring" else d.status
+
+
+def _bearing_error(pose, xy) -> float:
+    """Turn (rad, in [-pi, pi), positive = left) from robot ``pose`` (x, y, yaw) to face world
+    point ``xy`` (its first two coordinates, metres)."""
+    dx, dy = xy[0] - pose[0], xy[1] - pose[1]
+    return float((np.arctan2(dy, dx) - pose[2] + np.pi) % (2 * np.pi) - np.pi)
 
 
 def _crop_around(rgb: np.ndarray, mask: np.ndarray, margin: float = 0.5, min_size: int = 32) -> np.ndarray:

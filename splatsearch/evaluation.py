@@ -88,12 +88,15 @@ def summarise(results: list[dict]) -> dict[str, dict]:
     out = {}
     for v in dict.fromkeys(r["variant"] for r in results):
         rs = [r for r in results if r["variant"] == v]
-        ran = [r for r in rs if "error" not in r] or [{"steps": np.nan, "wall_time": np.nan}]
+        ran = [r for r in rs if "error" not in r]
+        steps = np.array([r["steps"] for r in ran], float)
+        wall = np.array([r["wall_time"] for r in ran], float)
         out[v] = {"n": len(rs), "SR": float(np.mean([r["success"] for r in rs])),
-                  "SPL": float(np.mean([r["spl"] for r in rs])), "steps": float(np.mean([r["steps"] for r in ran])),
-                  "median_wall_s": float(np.median([r["wall_time"] for r in ran])),
-                  "mean_wall_s": float(np.mean([r["wall_time"] for r in ran])),
-                  "errors": len(rs) - len([r for r in rs if "error" not in r])}
+                  "SPL": float(np.mean([r["spl"] for r in rs])),
+                  "steps": float(steps.mean()) if len(ran) else float("nan"),
+                  "median_wall_s": float(np.median(wall)) if len(ran) else float("nan"),
+                  "mean_wall_s": float(wall.mean()) if len(ran) else float("nan"),
+                  "errors": len(rs) - len(ran)}
     return out
 
 

@@ -21,6 +21,7 @@ which load weights from a local path) over the masked object crop.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Protocol, runtime_checkable
 
 import cv2
@@ -115,9 +116,10 @@ class EncoderAppearance:
         return float(np.clip((a @ b / (na * nb) + 1.0) / 2.0, 0.0, 1.0))
 
 
-def goal_object_mask(detections, goal_class: str) -> np.ndarray | None:
-    """The goal object's mask in the goal image: the largest detection of ``goal_class``
-    (a goal image is framed on its object), or None when there is none."""
+def goal_object_mask(detections: Iterable, goal_class: str) -> np.ndarray | None:
+    """The goal object's (H, W) bool mask in the goal image: the largest of the
+    :class:`~splatsearch.search.detection.Detection` s labelled ``goal_class`` (a goal image is
+    framed on its object), or None when there is none."""
     masks = [d.mask for d in detections if d.label == goal_class]
     if not masks:
         return None
