@@ -30,8 +30,8 @@ from .controller import FollowerConfig, follow_step, follower_init
 from .dwa import step_unicycle
 from .geometry import F32, field_lookup, robot_to_world
 from .llu import LLUBuffer, TextDB
-from .olivia_data import ACTIONS, PREV_STEPS, action_of, caption_scene, observe
-from .runner import GOAL_TOLERANCE, EpisodeResult
+from .olivia_data import ACTIONS, PREV_STEPS, caption_scene, expert_action, observe
+from .runner import GOAL_TOLERANCE, EpisodeResult, make_world
 from .sc_clip import SCCLIP, SCCLIPConfig, normalize
 from .scenarios import ROBOT_RADIUS, Scenario
 from .tpn import TPN, TPNConfig
@@ -138,8 +138,9 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                        sf: pedsim.SocialForceConfig | None = None) -> EpisodeResult:
     """Drive OLiVia-Nav through ``scn`` (same loop as :func:`splatsearch.social.runner.run_episode`:
     move the robot, refusing moves into walls, then step the people, who see it). With
-    ``buffer``, every ``buffer_every``-th view (and its privileged scene, for a template
-    captioner) is stored for the LLU. ``plan_ms`` is the mean wall-clock per planning cycle."""
+    ``buffer``, every ``buffer_every``-th view is stored for the LLU with its privileged scene,
+    for a template captioner; the scene's action is the expert's from that state
+    (:func:`~splatsearch.social.olivia_data.expert_action`). ``plan_ms`` is the mean wall-clock per planning cycle."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()
@@ -156,6 +157,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     reached = False
     traj_world = None
     plan_s, n_plans = 0.0, 0
+    expert_world = make_world(scn, "expert") if buffer is not None else None
     for t in range(n):
         if t % cfg.replan_every == 0 or traj_world is None:
             tp = max(len(poses) - 1 - PREV_STEPS, 0)
@@ -167,8 +169,11 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
             plan_s += time.perf_counter() - t0
             n_plans += 1
             if buffer is not None and not buffer.full and (t // cfg.replan_every) % buffer_every == 0:
-                vel = np.asarray(peds.vel)
-                buffer.add(obs.image, caption_scene(scn, pose, people[-1], vel, action_of(tr)))
+                # the captioner judges the view as a VLM would: the action the robot should
+                # take there (the expert's), not the one it chose, which would only teach the
+                # encoders the planner's own mistakes
+                act = expert_action(scn, pose, cmds[-1] if cmds else np.zeros(2, np.float32), peds, t, expert_world)
+                buffer.add(obs.image, caption_scene(scn, pose, people[-1], np.asarray(peds.vel), act))
         cmd, fstate = follow_step(cfg.follower, fstate, jnp.asarray(pose), jnp.asarray(traj_world, F32), scn.dt)
         new_pose = np.asarray(step_unicycle(jnp.asarray(pose), cmd, scn.dt))
         if float(field_lookup(field, jnp.asarray(new_pose[:2]))) < ROBOT_RADIUS:

@@ -44,7 +44,7 @@ def _scenarios(text: str) -> tuple[str, ...]:
 
 def register_olivia(social_subparsers) -> None:
     """Add the ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
-    from .scenarios import THESIS_SCENARIOS
+    from .scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS
 
     p = social_subparsers.add_parser("train", help="train OLiVia-Nav (SC-CLIP, TPN, TSM) on expert episodes")
     p.add_argument("--out", default="runs/olivia", help="output directory (checkpoints, data cache, summary)")
@@ -66,7 +66,7 @@ def register_olivia(social_subparsers) -> None:
     e.add_argument("--checkpoint", default="runs/olivia/olivia.npz")
     e.add_argument("--out", default=None, help="where to write eval.json and eval.md (default: next to the checkpoint)")
     e.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS)
-    e.add_argument("--seeds", type=_ints, default=(1000, 1001, 1002, 1003, 1004),
+    e.add_argument("--seeds", type=_ints, default=TABLE_ONE_SEEDS,
                    help="held-out seeds (never trained on)")
     e.add_argument("--baselines", default="dwa,convoi", help="comma list of dwa, convoi (or empty)")
     e.add_argument("--ablations", action="store_true", help="also the ablations in Table I")

@@ -58,7 +58,7 @@ from .olivia_data import (
     build_dataset,
     with_action,
 )
-from .scenarios import THESIS_SCENARIOS, make_scenario
+from .scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS, make_scenario
 from .tokenizer import DEFAULT_TOKENIZER
 
 FORMAT = "splatsearch-olivia-checkpoint"
@@ -546,7 +546,7 @@ def run_baseline(scn, kind: str):
     return run_episode(scn, kind)
 
 
-def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = (1000, 1001, 1002, 1003, 1004),
+def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = TABLE_ONE_SEEDS,
               baselines: Sequence[str] = ("dwa", "convoi"), variants: Sequence[str] = ("olivia",),
               log: Callable[[str], None] = print, progress=None) -> list[dict]:
     """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``."""

@@ -301,6 +301,34 @@ def run_episode(scn: Scenario, kind: str, *, convoi=None, observer=None, max_ste
                          convoi.stats() if convoi is not None else {}, scn.dt)
 
 
+def expert_rollout(scn: Scenario, pose, vel, peds: pedsim.PedState, t_index: int, n_steps: int,
+                   world: World | None = None) -> np.ndarray:
+    """What the expert would do from an arbitrary state: its closed loop forked from the robot at
+    ``pose`` (3,) world with velocity ``vel`` (2,) (v m/s, ω rad/s), the people in ``peds`` and
+    the scenario clock at step ``t_index``, for ``n_steps`` steps (or until the goal).
+
+    Returns the expert's poses (k + 1, 3), k <= n_steps, starting at ``pose``. The people of the
+    fork react to the expert, not to the real robot; the caller's state is not touched. This is
+    the privileged oracle behind the offline captioner's "correct action" for views the robot
+    collects itself (the LLU buffer), as the expert episodes are for the training views."""
+    if n_steps < 1:
+        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    cfg = planner_config("expert")
+    sf = pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
+    world = world if world is not None else make_world(scn, "expert")
+    seed_key = jax.random.PRNGKey(scn.seed)
+    carry = Carry(jnp.asarray(pose, F32), jnp.asarray(vel, F32), peds, jnp.asarray(int(t_index), jnp.int32))
+    ref = jnp.zeros((MAX_REF, 2), F32)
+    ref_valid = jnp.zeros(MAX_REF, bool)
+    out = [np.asarray(pose, np.float32)]
+    for _ in range(int(n_steps)):
+        carry, _ = control_step(carry, world, ref, ref_valid, jnp.asarray(False), seed_key, "expert", cfg, sf)
+        out.append(np.asarray(carry.pose))
+        if np.linalg.norm(out[-1][:2] - scn.goal) < GOAL_TOLERANCE:
+            break
+    return np.stack(out)
+
+
 def min_wall_clearance(res: EpisodeResult, scn: Scenario) -> float:
     """Smallest static clearance (m, centre to wall surface) along the robot's trajectory."""
     return float(np.min(np.asarray(field_lookup(scn.field(), jnp.asarray(res.robot[:, :2], F32)))))
@@ -312,5 +340,5 @@ def people_gaps(res: EpisodeResult) -> np.ndarray:
     return d.min(1) if d.shape[1] else np.full(len(d), np.inf)
 
 
-__all__ = ["PLANNERS", "Carry", "EpisodeResult", "StepOut", "World", "carrot", "control_step", "lane_path",
+__all__ = ["PLANNERS", "Carry", "EpisodeResult", "StepOut", "World", "carrot", "control_step", "expert_rollout", "lane_path",
            "make_world", "min_wall_clearance", "people_gaps", "planner_config", "run_episode"]

@@ -203,3 +203,21 @@ def test_labels_of_a_reached_episode_end_at_the_goal(hallway):
         s = od.samples_from_episode(hallway, res, every=10, augment=0, rng=np.random.default_rng(0))
         last = s.future[-1, -1, 0] + robot[s.t[-1], 0]  # robot frame = world shifted (yaw 0)
         assert last == pytest.approx(end, abs=1e-3)
+
+
+def test_expert_action_is_judged_from_the_state_not_the_robot(hallway):
+    """The LLU's offline captioner labels a view with what the expert would do from there."""
+    from splatsearch.social.runner import expert_rollout
+
+    start = np.asarray(hallway.start, np.float32)
+    zero = np.zeros(2, np.float32)
+    poses = expert_rollout(hallway, start, zero, hallway.peds, 0, 8)
+    assert poses.shape[1] == 3 and 2 <= len(poses) <= 9
+    np.testing.assert_allclose(poses[0], start)
+    assert poses[-1, 0] > start[0]  # it heads down the hallway toward the goal
+    assert od.ACTIONS[od.expert_action(hallway, start, zero, hallway.peds, 0)] == "straight"
+    # the same place faced the wrong way: the expert turns round, whatever a planner would do
+    back = start + np.array([0.0, 0.0, np.pi], np.float32)
+    assert od.ACTIONS[od.expert_action(hallway, back, zero, hallway.peds, 0)] in ("turn_left", "turn_right", "yield")
+    with pytest.raises(ValueError):
+        expert_rollout(hallway, start, zero, hallway.peds, 0, 0)

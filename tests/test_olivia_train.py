@@ -162,6 +162,11 @@ def test_closed_loop_episode_with_untrained_networks():
     res = run_olivia_episode(make_scenario("hallway", 1000), planner, max_steps=12, buffer=buf, buffer_every=1)
     assert res.robot.shape == (13, 3) and res.people.shape[0] == 13 and res.cmds.shape == (12, 2)
     assert buf.full and buf.images[0].shape == (IMG_H, IMG_W, 3)
+    # the untrained planner's views are captioned with the expert's action from the same state
+    from splatsearch.social.olivia_data import expert_action
+
+    scn = make_scenario("hallway", 1000)
+    assert buf.scenes[0].action == expert_action(scn, scn.start, np.zeros(2, np.float32), scn.peds, 0)
     assert res.plan_ms > 0
     with pytest.raises(ValueError):
         OliviaNav(params, db, cfg, variant="nope")
