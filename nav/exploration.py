@@ -21,7 +21,7 @@ import numpy as np
 from .encoders import ImageEncoder, cosine
 from .fmm import FMMPlanner
 from .frontiers import MIN_POCKET_AREA, Frontier, attach_distances, extract_frontiers
-from .grid import GridSpec
+from .grid import GridSpec, wrap_angle
 from .occupancy import OCCUPIED, UNKNOWN, OccupancyGrid
 from .value_map import R_VAL, ValueMap
 
@@ -357,7 +357,7 @@ class ExplorationPlanner:
         rc = np.argwhere(unk).mean(0) + [rows.start, cols.start]
         c = self.spec.cell_to_world(rc)
         a = np.arctan2(c[1] - pose[1], c[0] - pose[0]) - pose[2]
-        return float((a + np.pi) % (2 * np.pi) - np.pi)
+        return float(wrap_angle(a))
 
     def _select(self, fs: list[Frontier]) -> Frontier:
         best = fs[0]

@@ -24,7 +24,7 @@ import numpy as np
 import skfmm
 from scipy import ndimage
 
-from .grid import GridSpec, disk, known_bbox
+from .grid import GridSpec, disk, known_bbox, wrap_angle
 from .occupancy import FREE, OCCUPIED
 
 ACTIONS = ("stop", "move_forward", "turn_left", "turn_right")
@@ -267,7 +267,7 @@ class FMMPlanner:
         # no discrete move gets closer: rotate toward the path and let the caller notice if this
         # repeats (the exploration planner gives up on the target after a while)
         a = np.arctan2(wp[1] - xy[1], wp[0] - xy[0]) - pose[2]
-        a = (a + np.pi) % (2 * np.pi) - np.pi
+        a = wrap_angle(a)
         return Plan("turn_left" if a >= 0 else "turn_right", "blocked", min(d0, d2), wp)
 
     def _best_heading(self, pose: np.ndarray, D: np.ndarray, mask: np.ndarray) -> tuple[int, float] | None:

@@ -100,6 +100,11 @@ class GridSpec:
         return slice(r0, r1), slice(c0, c1), mask
 
 
+def wrap_angle(a):
+    """Angle(s) in radians wrapped to [-pi, pi); works on floats, numpy and JAX arrays."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
 def disk(radius_cells: float) -> np.ndarray:
     """(2k+1, 2k+1) bool structuring element of cell centres within ``radius_cells`` of the middle."""
     k = int(np.floor(max(radius_cells, 0.0)))

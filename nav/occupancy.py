@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .grid import GridSpec, disk, known_bbox
+from .grid import GridSpec, disk, known_bbox, wrap_angle
 
 UNKNOWN = np.uint8(0)
 FREE = np.uint8(1)
@@ -239,7 +239,7 @@ class OccupancyGrid:
 
         # azimuth bins (as many as sampled columns) relative to the optical axis
         phi = np.arctan2(dxy[:, 1], dxy[:, 0]) - yaw
-        phi = (phi + np.pi) % (2 * np.pi) - np.pi
+        phi = wrap_angle(phi)
         nb = max(2, (W + s - 1) // s)
         pmin, pmax = float(phi.min()), float(phi.max())
         span = max(pmax - pmin, 1e-6)

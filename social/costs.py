@@ -36,13 +36,13 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from splatsearch.nav.grid import wrap_angle
 
 from .geometry import (
     DistanceField,
     field_lookup,
     point_segment_distance,
     world_to_robot,
-    wrap_angle,
 )
 
 

@@ -26,11 +26,6 @@ from splatsearch.nav.grid import GridSpec
 F32 = jnp.float32
 
 
-def wrap_angle(a):
-    """Angle(s) wrapped to [-pi, pi) (works on numpy and JAX arrays)."""
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def world_to_robot(points_xy, pose):
     """(..., 2) world points -> (..., 2) robot frame (x forward, y left) of ``pose`` (3,) (x, y, yaw)."""
     xp = jnp if isinstance(points_xy, jax.Array) or isinstance(pose, jax.Array) else np

@@ -38,6 +38,7 @@ from typing import Any, Protocol, Sequence, runtime_checkable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from splatsearch.nav.grid import wrap_angle
 
 from .geometry import F32, DistanceField, field_lookup, world_to_robot
 
@@ -234,7 +235,7 @@ def future_in_frame(poses: np.ndarray, t: int, frame: np.ndarray, offset=None, d
         fut[:, :2] += w[:, None] * np.asarray(offset, np.float64)[None]
         fut[:, 2] += w * dyaw
     xy = world_to_robot(fut[:, :2], np.asarray(frame, np.float64))
-    yaw = (fut[:, 2] - frame[2] + np.pi) % (2 * np.pi) - np.pi
+    yaw = wrap_angle(fut[:, 2] - frame[2])
     return np.concatenate([xy, yaw[:, None]], -1).astype(np.float32)
 
 

@@ -27,6 +27,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from splatsearch.nav.grid import wrap_angle
 
 from .olivia_data import GOAL_DIM, HORIZON, N_POINTS
 
@@ -201,9 +202,7 @@ def init_tpn(key, cfg: TPNConfig = TPNConfig()):
                          z((1, cfg.goal_dim), F32), jnp.ones(1, bool), jnp.ones(1, bool))["params"]
 
 
-def wrap(a):
-    """Angles wrapped to [-pi, pi)."""
-    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
+wrap = wrap_angle  # angles wrapped to [-pi, pi)
 
 
 def head_errors(pred, target, yaw_weight: float = 0.3):

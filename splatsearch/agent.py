@@ -40,7 +40,7 @@ from splatsearch.nav.exploration import (
     ExplorationPlanner,
     ObjectScore,
 )
-from splatsearch.nav.grid import GridSpec
+from splatsearch.nav.grid import GridSpec, wrap_angle
 from splatsearch.nav.occupancy import FREE, OCCUPIED
 from splatsearch.search.appearance import (
     AppearanceModel,
@@ -619,7 +619,7 @@ def _bearing_error(pose, xy) -> float:
     """Turn (rad, in [-pi, pi), positive = left) from robot ``pose`` (x, y, yaw) to face world
     point ``xy`` (its first two coordinates, metres)."""
     dx, dy = xy[0] - pose[0], xy[1] - pose[1]
-    return float((np.arctan2(dy, dx) - pose[2] + np.pi) % (2 * np.pi) - np.pi)
+    return float(wrap_angle(np.arctan2(dy, dx) - pose[2]))
 
 
 def _crop_around(rgb: np.ndarray, mask: np.ndarray, margin: float = 0.5, min_size: int = 32) -> np.ndarray:

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from splatsearch.mapper import Frame
+from splatsearch.nav.grid import wrap_angle
 
 
 def _read_list(path: str) -> list[tuple[float, list[str]]]:
@@ -137,7 +138,7 @@ def sim_trajectory(seed: int = 0, n_frames: int = 100, width: int = 320, height:
             look = pts[min(i + 8, len(pts) - 1)] - pts[i]
             want = float(np.arctan2(look[1], look[0])) if np.linalg.norm(look) > 1e-6 else yaw
             while True:  # turn towards the path in small steps, one frame each
-                d = (want - yaw + np.pi) % (2 * np.pi) - np.pi
+                d = wrap_angle(want - yaw)
                 if abs(d) <= np.radians(turn_deg):
                     yaw = want
                     break

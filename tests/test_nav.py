@@ -954,3 +954,14 @@ def test_exploration_blacklists_a_target_while_the_robot_stays_on_one_spot():
         ep._since_progress = 0  # as a switch between two targets resets it
         ep.act(pose)
     assert any(np.hypot(*(b - first.waypoint_xy)) < 1e-9 for b in ep.blacklist)
+
+
+def test_wrap_angle_on_floats_and_arrays():
+    from splatsearch.nav.grid import wrap_angle
+
+    a = np.linspace(-10.0, 10.0, 401)
+    w = wrap_angle(a)
+    assert w.min() >= -np.pi and w.max() < np.pi
+    np.testing.assert_allclose(np.cos(w), np.cos(a), atol=1e-12)
+    np.testing.assert_allclose(np.sin(w), np.sin(a), atol=1e-12)
+    assert wrap_angle(np.pi) == -np.pi and abs(wrap_angle(3 * np.pi / 2) + np.pi / 2) < 1e-12

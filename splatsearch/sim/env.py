@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from splatsearch.nav.grid import wrap_angle
+
 from .house import House
 from .navgrid import NavGrid, build_navgrid
 from .raycast import Frame, HouseRenderer, SensorNoise
@@ -209,4 +211,4 @@ class HouseEnv:
 
 
 def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
+    return float(wrap_angle(a))
