@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from splatsearch.camera import pixels_to_world
 from splatsearch.gaussians import GaussianMap, append, compact, empty_map, render_args
 from splatsearch.kernels.densify import densify
 from splatsearch.losses import l1, mapping_loss, psnr, ssim, ssim_stats
@@ -350,10 +351,7 @@ def _backproject(depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, step: in
     v, u = np.mgrid[step // 2:depth.shape[0]:step, step // 2:depth.shape[1]:step]
     z = depth[v, u]
     ok = z > 0
-    u, v, z = u[ok] + 0.5, v[ok] + 0.5, z[ok]
-    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
-    c2w = np.linalg.inv(viewmat.astype(np.float64))
-    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+    return pixels_to_world(u[ok], v[ok], z[ok], viewmat, K)
 
 
 def _visible_fraction(pts: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> float:

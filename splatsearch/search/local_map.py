@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from splatsearch.camera import pixels_to_world
 from splatsearch.gaussians import GaussianMap
 from splatsearch.mapper import Frame, Mapper, MapperConfig
 
@@ -110,12 +111,9 @@ def region_frame(rgb: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, K: np.
     Returns (rgb (H, W, 3), depth (H, W)) copies.
     """
     H, W = depth.shape
-    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    z = depth
-    pc = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
-    R, t = viewmat[:3, :3], viewmat[:3, 3]
-    pw = (pc - t) @ R  # R^T (p - t) for row vectors
-    inside = (z > 0) & np.all((pw >= lo) & (pw <= hi), axis=-1)
+    rows, cols = np.mgrid[0:H, 0:W]
+    pw = pixels_to_world(cols, rows, depth, viewmat, K)
+    inside = (depth > 0) & np.all((pw >= lo) & (pw <= hi), axis=-1)
     rgb_out = np.where(inside[..., None], rgb, 0.0).astype(np.float32)
     return rgb_out, np.where(inside, depth, 0.0).astype(np.float32)
 

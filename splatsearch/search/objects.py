@@ -19,6 +19,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from splatsearch.camera import pixels_to_world
+
 from .novel_views import camera_pose
 
 # --------------------------------------------------------------------------------------------
@@ -141,10 +143,7 @@ def backproject_mask(mask: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, K
     if not (m & (depth > 0)).any():
         m = mask
     v, u = np.nonzero(m & (depth > 0) & np.isfinite(depth))
-    z = depth[v, u]
-    cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * z, (v + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
-    c2w = np.linalg.inv(viewmat)
-    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+    return pixels_to_world(u, v, depth[v, u], viewmat, K)
 
 
 def lift_mask_depth(mask: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, *, erode_px: int = 2,
