@@ -140,7 +140,8 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     move the robot, refusing moves into walls, then step the people, who see it). With
     ``buffer``, every ``buffer_every``-th view is stored for the LLU with its privileged scene,
     for a template captioner; the scene's action is the expert's from that state
-    (:func:`~splatsearch.social.olivia_data.expert_action`). ``plan_ms`` is the mean wall-clock per planning cycle."""
+    (:func:`~splatsearch.social.olivia_data.expert_action`). ``plan_ms`` is the mean wall-clock
+    per planning cycle."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()

@@ -290,10 +290,10 @@ def expert_action(scn, pose, vel, peds, t_index: int, world=None) -> int:
     pose (3,) world; vel (2,) the robot's (v, ω); peds: the simulator's people; t_index: the
     scenario step. This is what the offline captioner says the robot *should* do, as a VLM
     judging the view would, whatever the robot then did."""
-    from .runner import expert_rollout
+    from .runner import GOAL_TOLERANCE, expert_rollout
 
     poses = expert_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON, world)
-    if np.linalg.norm(poses[-1, :2] - np.asarray(scn.goal)[:2]) < 0.3 + 1e-6:
+    if np.linalg.norm(poses[-1, :2] - np.asarray(scn.goal)[:2]) < GOAL_TOLERANCE:
         poses = extend_to_goal(poses, scn.goal)
     return action_of(future_in_frame(poses, 0, np.asarray(pose, np.float64)))
 
