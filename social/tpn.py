@@ -202,14 +202,11 @@ def init_tpn(key, cfg: TPNConfig = TPNConfig()):
                          z((1, cfg.goal_dim), F32), jnp.ones(1, bool), jnp.ones(1, bool))["params"]
 
 
-wrap = wrap_angle  # angles wrapped to [-pi, pi)
-
-
 def head_errors(pred, target, yaw_weight: float = 0.3):
     """(B, K) mean squared pose error of each head: pred (B, K, T, 3), target (B, T, 3) (m², with
     ``yaw_weight`` x rad² for the heading)."""
     d = pred[..., :2] - target[:, None, :, :2]
-    dyaw = wrap(pred[..., 2] - target[:, None, :, 2])
+    dyaw = wrap_angle(pred[..., 2] - target[:, None, :, 2])
     return jnp.mean(jnp.sum(d ** 2, -1) + yaw_weight * dyaw ** 2, -1)
 
 

@@ -136,9 +136,6 @@ def backproject_mask(mask: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, K
     if depth.ndim != 2:
         raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
     mask = _check_mask(mask, depth.shape)
-    viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
-    if viewmat.shape != (4, 4) or K.shape != (3, 3):
-        raise ValueError(f"viewmat must be (4, 4) and K (3, 3), got {viewmat.shape}, {K.shape}")
     m = erode_mask(mask, erode_px)
     if not (m & (depth > 0)).any():
         m = mask

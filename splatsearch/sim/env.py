@@ -164,8 +164,9 @@ class HouseEnv:
                 s.odom[1] += d * np.sin(s.odom[2])
         elif action in ("turn_left", "turn_right"):
             a = np.radians(TURN_DEG) * (1 if action == "turn_left" else -1)
-            s.pose[2] = _wrap(s.pose[2] + a)
-            s.odom[2] = _wrap(s.odom[2] + a + (self.rng.normal(0, on.rot_sigma) if on.rot_sigma > 0 else 0.0))
+            s.pose[2] = float(wrap_angle(s.pose[2] + a))
+            noise = self.rng.normal(0, on.rot_sigma) if on.rot_sigma > 0 else 0.0
+            s.odom[2] = float(wrap_angle(s.odom[2] + a + noise))
         else:
             s.stopped = True
         s.collisions += int(collided)
@@ -208,7 +209,3 @@ class HouseEnv:
         """Render an arbitrary camera (no noise), e.g. for goal images."""
         w, h = width or self.width, height or self.height
         return self.renderer.render(viewmat, self.K if K is None else K, w, h, max_depth=self.max_depth)
-
-
-def _wrap(a: float) -> float:
-    return float(wrap_angle(a))
