@@ -33,7 +33,7 @@ import tempfile
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
-from typing import Any, Protocol, Sequence, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, Sequence, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +41,11 @@ import numpy as np
 from splatsearch.nav.grid import wrap_angle
 
 from .geometry import F32, DistanceField, field_lookup, world_to_robot
+
+if TYPE_CHECKING:
+    from .pedsim import PedState
+    from .runner import World
+    from .scenarios import Scenario
 
 # -- sensor and label constants ----------------------------------------------------------------
 IMG_H, IMG_W = 32, 64          # egocentric view (pixels)
@@ -281,7 +286,8 @@ def action_of(traj) -> int:
     return ACTIONS.index("straight")
 
 
-def expert_action(scn, pose, vel, peds, t_index: int, world=None) -> int:
+def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedState, t_index: int,
+                  world: World | None = None) -> int:
     """The "correct" high-level action (index into :data:`ACTIONS`) at an arbitrary state: the
     action of the expert's future from there (:func:`splatsearch.social.runner.expert_rollout`
     over the TPN horizon, continued to the goal when it arrives), labelled like the training

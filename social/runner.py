@@ -313,6 +313,10 @@ def expert_rollout(scn: Scenario, pose, vel, peds: pedsim.PedState, t_index: int
     collects itself (the LLU buffer), as the expert episodes are for the training views."""
     if n_steps < 1:
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    if np.shape(pose) != (3,) or np.shape(vel) != (2,):
+        raise ValueError(f"pose must be (3,) and vel (2,), got {np.shape(pose)} and {np.shape(vel)}")
+    if t_index < 0:
+        raise ValueError(f"t_index must be >= 0, got {t_index}")
     cfg = planner_config("expert")
     sf = pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     world = world if world is not None else make_world(scn, "expert")

@@ -8,9 +8,11 @@ row + 0.5); depth is the z distance in metres.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
-def pixels_to_world(cols, rows, depth, viewmat, K) -> np.ndarray:
+def pixels_to_world(cols: ArrayLike, rows: ArrayLike, depth: ArrayLike, viewmat: ArrayLike,
+                    K: ArrayLike) -> np.ndarray:
     """World points (..., 3) float64, metres, of pixels at integer ``cols`` / ``rows`` (any
     broadcastable shapes) with z-depth ``depth`` (metres) seen by the camera ``viewmat`` (4, 4)
     world-to-camera with intrinsics ``K`` (3, 3). A depth of 0 gives the camera centre: callers

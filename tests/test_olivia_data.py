@@ -221,3 +221,7 @@ def test_expert_action_is_judged_from_the_state_not_the_robot(hallway):
     assert od.ACTIONS[od.expert_action(hallway, back, zero, hallway.peds, 0)] in ("turn_left", "turn_right", "yield")
     with pytest.raises(ValueError):
         expert_rollout(hallway, start, zero, hallway.peds, 0, 0)
+    with pytest.raises(ValueError, match="pose must be"):
+        expert_rollout(hallway, start[:2], zero, hallway.peds, 0, 8)
+    with pytest.raises(ValueError, match="t_index"):
+        expert_rollout(hallway, start, zero, hallway.peds, -1, 8)
