@@ -58,7 +58,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
     console = Console()
     t0 = time.perf_counter()
-    house = sim.make_house(args.seed, args.rooms)
+    house = sim.make_house(args.seed, args.rooms, identical_furniture=args.identical_furniture)
     t_house = time.perf_counter() - t0
     if args.sim_command == "preview":
         with console.status("rendering preview ..."):
@@ -158,7 +158,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         TimeElapsedColumn,
     )
 
-    from splatsearch.evaluation import evaluate, markdown_table
+    from splatsearch.evaluation import eval_title, evaluate, markdown_table
 
     console = Console()
     if not console.is_terminal:
@@ -176,8 +176,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
         kw = {} if variants is None else {"variants": variants}
         _, summary = evaluate(args.split, args.episodes, args.seed, workers=args.workers, out=args.out,
-                              max_steps=args.max_steps, progress=progress, resume=args.resume, **kw)
-    console.print(markdown_table(summary, f"{args.split}, {args.episodes} episodes, seed {args.seed}"))
+                              max_steps=args.max_steps, progress=progress, resume=args.resume,
+                              identical_furniture=args.identical_furniture,
+                              agent_overrides={"appearance": False} if args.no_appearance else None, **kw)
+    console.print(markdown_table(summary, eval_title(args.split, args.episodes, args.seed, args.identical_furniture,
+                                                     {"appearance": False} if args.no_appearance else None)))
     console.print(f"wrote {args.out}/results.json, summary.json, summary.md")
     return 0
 
@@ -243,6 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
         c = ssub.add_parser(name, help=help_)
         c.add_argument("--seed", type=int, default=0, help="house seed (>= 0)")
         c.add_argument("--rooms", type=int, default=None, help="number of rooms, 3..8 (default: from the seed)")
+        c.add_argument("--identical-furniture", action="store_true", help="one model per furniture class")
         c.add_argument("--out", default=default_out)
         if name == "episodes":
             c.add_argument("--split", choices=["val", "val-hard"], default="val")
@@ -287,6 +291,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-steps", type=int, default=None)
     e.add_argument("--resume", action="store_true",
                    help="keep the finished episodes in OUT/results.json and run only the missing ones")
+    e.add_argument("--identical-furniture", action="store_true",
+                   help="one model per furniture class in every house: same-class instances differ only in "
+                        "their surroundings")
+    e.add_argument("--no-appearance", action="store_true",
+                   help="every variant identifies by feature matches alone (as the thesis), without the colour "
+                        "cue, which cannot tell identical furniture apart")
     e.add_argument("--out", default="runs/eval")
     e.set_defaults(func=_cmd_eval)
 

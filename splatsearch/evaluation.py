@@ -26,15 +26,17 @@ def house_seeds(seed: int, n_houses: int) -> list[int]:
     return [EVAL_SEED_BASE + 100 * seed + i for i in range(n_houses)]
 
 
-def make_eval_episodes(split: str, n: int, seed: int = 0, per_house: int = 5) -> list:
-    """``n`` episodes of ``split``, ``per_house`` per house, in houses :func:`house_seeds`."""
+def make_eval_episodes(split: str, n: int, seed: int = 0, per_house: int = 5, *,
+                       identical_furniture: bool = False) -> list:
+    """``n`` episodes of ``split``, ``per_house`` per house, in houses :func:`house_seeds`
+    (built with ``identical_furniture``, see :func:`splatsearch.sim.make_house`)."""
     from splatsearch import sim
 
     if n < 1 or per_house < 1:
         raise ValueError(f"need n >= 1 and per_house >= 1, got {n}, {per_house}")
     eps = []
     for hs in house_seeds(seed, -(-n // per_house)):
-        house = sim.make_house(hs)
+        house = sim.make_house(hs, identical_furniture=identical_furniture)
         env = sim.HouseEnv(house)
         k = min(per_house, n - len(eps))
         for e in sim.make_episodes(house, k, split, seed=seed, env=env):
@@ -57,7 +59,7 @@ def _init_worker(threads: int) -> None:
 
 
 def _run_one(args):
-    ep_json, variant, max_steps = args
+    ep_json, variant, max_steps, overrides = args
     import warp as wp
 
     wp.config.quiet = True
@@ -67,7 +69,7 @@ def _run_one(args):
     ep = Episode.from_json(ep_json)
     t0 = time.perf_counter()
     try:
-        r = run_episode(ep, AgentConfig(variant=variant), max_steps=max_steps)
+        r = run_episode(ep, AgentConfig(variant=variant, **overrides), max_steps=max_steps)
     except Exception as e:  # noqa: BLE001 - one broken episode must not end the whole evaluation
         import traceback
 
@@ -76,6 +78,9 @@ def _run_one(args):
                 "error": "".join(traceback.format_exception_only(type(e), e)).strip()}
     d = r.to_json()
     d.pop("trajectory")
+    d["identical_furniture"] = bool(ep.identical_furniture)
+    if overrides:
+        d["agent_overrides"] = overrides
     return d
 
 
@@ -100,6 +105,14 @@ def summarise(results: list[dict]) -> dict[str, dict]:
     return out
 
 
+def eval_title(split: str, n: int, seed: int, identical_furniture: bool = False, agent_overrides: dict | None = None) -> str:
+    """The heading of an evaluation's table."""
+    extra = ", identical furniture" if identical_furniture else ""
+    if agent_overrides:
+        extra += ", agent " + ", ".join(f"{k}={v}" for k, v in sorted(agent_overrides.items()))
+    return f"{split}, {n} episodes, seed {seed}{extra}"
+
+
 def markdown_table(summary: dict[str, dict], title: str) -> str:
     """The summary as a markdown table."""
     lines = [f"### {title}", "", "| method | episodes | SR | SPL | mean steps | median wall s | errors |",
@@ -112,20 +125,31 @@ def markdown_table(summary: dict[str, dict], title: str) -> str:
 
 def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_VARIANTS, workers: int = 1,
              out: str | None = None, max_steps: int | None = None, progress=None,
-             resume: bool = False) -> tuple[list[dict], dict]:
+             resume: bool = False, identical_furniture: bool = False,
+             agent_overrides: dict | None = None) -> tuple[list[dict], dict]:
     """Run every variant on the same ``n`` episodes. Returns (per-episode results, summary).
 
     Results are saved after every finished episode to ``out/results.json`` (so a crash or Ctrl-C
     keeps them) and the summary to ``out/summary.json`` and ``out/summary.md``. ``resume`` keeps
     the results already in ``out/results.json`` (episode id, house and variant must match this
-    run's episodes) and runs only the missing ones.
+    run's episodes) and runs only the missing ones. ``identical_furniture`` builds the houses with
+    one model per furniture class, so that only their surroundings tell same-class instances
+    apart (see :func:`splatsearch.sim.make_house`). ``agent_overrides``: :class:`AgentConfig`
+    fields set for every variant (e.g. ``{"appearance": False}``: identify by feature matches
+    alone, as the thesis does, since colours cannot tell identical furniture apart); a resume
+    keeps only results run with the same overrides.
     """
     bad = [v for v in variants if v not in VARIANTS]
     if bad:
         raise ValueError(f"unknown variant(s) {bad}; expected some of {VARIANTS}")
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    eps = make_eval_episodes(split, n, seed)
+    overrides = dict(agent_overrides or {})
+    bad = sorted((set(overrides) - set(AgentConfig.__dataclass_fields__)) | ({"variant"} & set(overrides)))
+    if bad:
+        raise ValueError(f"agent_overrides: not settable AgentConfig fields: {bad}")
+    AgentConfig(**overrides)  # invalid values fail here, not in every worker
+    eps = make_eval_episodes(split, n, seed, identical_furniture=identical_furniture)
     # episode-major: an interrupted run still holds every variant on the same first episodes
     results: list[dict] = []
     if resume:
@@ -137,9 +161,10 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_
                 old = json.load(f)
             houses = {e.episode_id: e.house_seed for e in eps}
             results = [r for r in old if r.get("variant") in variants and houses.get(r.get("episode_id")) == r.get("house_seed")
-                       and "error" not in r]
+                       and "error" not in r and bool(r.get("identical_furniture", False)) == identical_furniture
+                       and r.get("agent_overrides", {}) == overrides]
     done = {(r["episode_id"], r["variant"]) for r in results}
-    jobs = [(e.to_json(), v, max_steps) for e in eps for v in variants if (e.episode_id, v) not in done]
+    jobs = [(e.to_json(), v, max_steps, overrides) for e in eps for v in variants if (e.episode_id, v) not in done]
     t0 = time.perf_counter()
 
     def save():
@@ -170,9 +195,11 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_
                     progress(results[-1], len(results), total)
     summary = summarise(results)
     if out:
-        meta = {"split": split, "episodes": n, "seed": seed, "house_seeds": sorted({e.house_seed for e in eps}),
+        meta = {"split": split, "episodes": n, "seed": seed, "identical_furniture": identical_furniture,
+                "agent_overrides": overrides,
+                "house_seeds": sorted({e.house_seed for e in eps}),
                 "workers": workers, "total_wall_s": time.perf_counter() - t0, "summary": summary}
         atomic_write_bytes(os.path.join(out, "summary.json"), json.dumps(meta, indent=1).encode())
         atomic_write_bytes(os.path.join(out, "summary.md"),
-                           markdown_table(summary, f"{split}, {n} episodes, seed {seed}").encode())
+                           markdown_table(summary, eval_title(split, n, seed, identical_furniture, overrides)).encode())
     return results, summary

@@ -78,6 +78,20 @@ def test_evaluate_writes_results(tmp_path):
     assert summary["no_nvsm"]["n"] == 1
     with pytest.raises(ValueError, match="resume"):
         evaluate("val", 1, resume=True)
+    # a resume in identical-furniture houses does not reuse episodes from the other houses
+    ident, summary = evaluate("val", 1, seed=0, variants=("nearest_frontier",), out=str(tmp_path), max_steps=4,
+                              resume=True, identical_furniture=True)
+    assert len(ident) == 1 and ident[0]["identical_furniture"] and not results[0]["identical_furniture"]
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["identical_furniture"] and "identical furniture" in (tmp_path / "summary.md").read_text()
+    # agent overrides reach every variant, and a resume with other overrides reruns
+    feat, _ = evaluate("val", 1, seed=0, variants=("nearest_frontier",), out=str(tmp_path), max_steps=4,
+                       resume=True, identical_furniture=True, agent_overrides={"appearance": False})
+    assert len(feat) == 1 and feat[0]["agent_overrides"] == {"appearance": False}
+    assert "appearance=False" in (tmp_path / "summary.md").read_text()
+    for bad in ({"variant": "gaussnav"}, {"no_such_field": 1}):
+        with pytest.raises(ValueError, match="agent_overrides"):
+            evaluate("val", 1, agent_overrides=bad)
 
 
 @pytest.mark.slow

@@ -393,3 +393,38 @@ def test_replay_of_a_house_whose_layout_merged_rooms():
     assert len(h5.rooms) == 5
     ep5 = sim.make_episodes(h5, 1, "val", seed=0)[0]
     np.testing.assert_array_equal(sim.house_for_episode(ep5).vertices, h5.vertices)
+
+
+def test_identical_furniture_shares_one_model_per_class(tmp_path):
+    h = sim.make_house(3, identical_furniture=True)
+    assert h.identical_furniture
+    by_class: dict[str, list] = {}
+    for o in h.objects:
+        by_class.setdefault(o.class_name, []).append(o)
+    multi = {c: objs for c, objs in by_class.items() if len(objs) >= 2}
+    assert multi
+    for objs in multi.values():
+        first = objs[0]
+        for o in objs[1:]:
+            # same model: same materials face for face, same extents (w and d swap with a quarter turn)
+            np.testing.assert_array_equal(h.face_material[h.face_instance == o.instance_id],
+                                          h.face_material[h.face_instance == first.instance_id])
+            swap = round(abs(o.yaw - first.yaw) / (np.pi / 2)) % 2 == 1
+            want = first.size[[1, 0, 2]] if swap else first.size
+            np.testing.assert_allclose(o.size, want, atol=1e-9)
+    # the default house of that seed gives every instance its own materials
+    plain = sim.make_house(3)
+    assert not plain.identical_furniture
+    chairs = [o.instance_id for o in plain.objects if o.class_name == "chair"]
+    mats = [set(plain.face_material[plain.face_instance == i].tolist()) for i in chairs]
+    assert all(not (mats[0] & m) for m in mats[1:])
+    # episodes remember the mode, and replay and .glb files keep it
+    ep = sim.make_episodes(h, 1, "val-hard", seed=0)[0]
+    assert ep.identical_furniture
+    ep2 = sim.Episode.from_json(json.loads(json.dumps(ep.to_json())))
+    np.testing.assert_array_equal(sim.house_for_episode(ep2).face_material, h.face_material)
+    old = {k: v for k, v in ep.to_json().items() if k != "identical_furniture"}  # files from before the option
+    assert not sim.Episode.from_json(old).identical_furniture
+    p = tmp_path / "h.glb"
+    sim.save_house(h, str(p))
+    assert sim.load_house(str(p)).identical_furniture

@@ -51,6 +51,7 @@ class Episode:
     d_star: float
     success_distance: float = SUCCESS_DISTANCE
     max_steps: int = 1000
+    identical_furniture: bool = False  # the house was built with make_house(..., identical_furniture=True)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -248,12 +249,13 @@ def make_episodes(house: House, n: int, split: str = "val", seed: int = 0, *, en
             start=[float(xy[0]), float(xy[1]), float(rng.uniform(-np.pi, np.pi))],
             goal_instance_id=obj.instance_id, goal_class=obj.class_name,
             goal_viewmat=np.asarray(vm, float).tolist(), goal_K=intrinsics(width, height).tolist(),
-            goal_width=width, goal_height=height, d_star=d_star))
+            goal_width=width, goal_height=height, d_star=d_star,
+            identical_furniture=bool(getattr(house, "identical_furniture", False))))
     return episodes
 
 
 def house_for_episode(ep: Episode) -> House:
-    """Rebuild the house an episode was sampled in (from its seed and room count)."""
+    """Rebuild the house an episode was sampled in (from its seed, room count and furniture mode)."""
     from .house import make_house
 
     if ep.generator_version != GENERATOR_VERSION:
@@ -261,10 +263,11 @@ def house_for_episode(ep: Episode) -> House:
     # the stored count is len(house.rooms) of the sampled house; when the seed drew a different
     # count (the layout can merge rooms: houses 62, 82 and 1005 of the first 112), passing it
     # builds another house, so the seed alone is tried first
-    house = make_house(ep.house_seed)
+    same = bool(ep.identical_furniture)
+    house = make_house(ep.house_seed, identical_furniture=same)
     if len(house.rooms) == ep.house_n_rooms:
         return house
-    return make_house(ep.house_seed, ep.house_n_rooms)
+    return make_house(ep.house_seed, ep.house_n_rooms, identical_furniture=same)
 
 
 def goal_image(env: HouseEnv, ep: Episode):

@@ -97,6 +97,7 @@ class House:
     objects: list[SceneObject] = field(default_factory=list)
     wall_height: float = WALL_HEIGHT
     doors: list[tuple[str, float, float, float]] = field(default_factory=list)  # (axis, coord, lo, hi)
+    identical_furniture: bool = False  # one model (shape and materials) per furniture class
 
     @property
     def bounds(self) -> np.ndarray:
@@ -382,7 +383,7 @@ class _Builder:
 
 
 def make_house(seed: int, n_rooms: int | None = None, *, objects_per_room: tuple[int, int] = (2, 5),
-               distractors: bool = True) -> House:
+               distractors: bool = True, identical_furniture: bool = False) -> House:
     """Build a procedural house, deterministic per ``seed``.
 
     Args:
@@ -391,6 +392,10 @@ def make_house(seed: int, n_rooms: int | None = None, *, objects_per_room: tuple
             range when None.
         objects_per_room: (min, max) furniture pieces per non-corridor room.
         distractors: add cabinets, lamps and shelves (never goals).
+        identical_furniture: every piece of a class is the same model (shape and three
+            materials), as a house furnished from one catalogue (HM3D's matching dining chairs):
+            instances of a class then differ only in where they stand and what surrounds them.
+            Off: every instance has its own shape and materials.
 
     Raises:
         ValueError: for a negative seed or n_rooms outside 3..8.
@@ -432,19 +437,24 @@ def make_house(seed: int, n_rooms: int | None = None, *, objects_per_room: tuple
         center = (c, (a + b) / 2, DOOR_HEIGHT + hgt / 2) if axis == "x" else ((a + b) / 2, c, DOOR_HEIGHT + hgt / 2)
         B.add(_box(size, center), wall_mats[0], next_inst, CLASS_IDS["wall"])
         next_inst += 1
-    objects = _place_furniture(rng, rooms, doors, mats, B, next_inst, (lo, hi), distractors)
+    objects = _place_furniture(rng, rooms, doors, mats, B, next_inst, (lo, hi), distractors,
+                               bool(identical_furniture))
     V = np.concatenate(B.verts).astype(np.float32)
     return House(
         seed=int(seed), vertices=V, faces=np.concatenate(B.faces).astype(np.int32),
         face_material=np.concatenate(B.mat), face_instance=np.concatenate(B.inst), face_class=np.concatenate(B.cls),
-        vertex_colors=np.zeros_like(V), materials=mats, rooms=rooms, objects=objects, doors=list(doors))
+        vertex_colors=np.zeros_like(V), materials=mats, rooms=rooms, objects=objects, doors=list(doors),
+        identical_furniture=bool(identical_furniture))
 
 
 FREE_CELL = 0.1  # m, the placement grid
 
 
-def _place_furniture(rng, rooms, doors, mats, B: _Builder, next_inst: int, per_room, distractors) -> list[SceneObject]:
-    """Place objects room by room on a coarse free grid, keeping doorways and a connected floor."""
+def _place_furniture(rng, rooms, doors, mats, B: _Builder, next_inst: int, per_room, distractors,
+                     identical: bool = False) -> list[SceneObject]:
+    """Place objects room by room on a coarse free grid, keeping doorways and a connected floor.
+    ``identical``: the first piece of each class fixes its model (parts, extents, materials) for
+    the rest of the house."""
     from scipy import ndimage
 
     xmax = max(r.x1 for r in rooms)
@@ -478,6 +488,7 @@ def _place_furniture(rng, rooms, doors, mats, B: _Builder, next_inst: int, per_r
             door_cells.append((int(c / FREE_CELL), int(((a + b) / 2) / FREE_CELL)))
     door_rc = tuple(np.array(door_cells).T)
     objects: list[SceneObject] = []
+    catalogue: dict[str, tuple] = {}  # class -> (parts, extents, material slots)
 
     def connected(blocked: np.ndarray) -> bool:
         """Doorways mutually reachable, and no free pocket of 0.2 m^2 or more cut off."""
@@ -500,8 +511,12 @@ def _place_furniture(rng, rooms, doors, mats, B: _Builder, next_inst: int, per_r
             if not pool:
                 break
             cls = pool.pop(int(rng.integers(0, len(pool))))
-            parts, ext = _furniture_parts(cls, rng)
-            slots = [random_material(rng, mats) for _ in range(3)]
+            if identical and cls in catalogue:
+                parts, ext, slots = catalogue[cls]
+            else:
+                parts, ext = _furniture_parts(cls, rng)
+                slots = [random_material(rng, mats) for _ in range(3)]
+                catalogue[cls] = (parts, ext, slots)
             for _try in range(25):
                 yaw_k = int(rng.integers(0, 4))
                 w, d = (ext[0], ext[1]) if yaw_k % 2 == 0 else (ext[1], ext[0])

@@ -57,6 +57,7 @@ def save_house(house: House, path: str) -> None:
         "seed": house.seed, "wall_height": house.wall_height, "materials": house.materials.to_json(),
         "rooms": [vars(r) for r in house.rooms], "objects": [o.to_json() for o in house.objects],
         "doors": [list(d) for d in house.doors], "instances": per_inst,
+        "identical_furniture": bool(house.identical_furniture),
     }
     atomic_write_bytes(path, scene.export(file_type="glb"))
 
@@ -119,7 +120,8 @@ def _load_own(scene: trimesh.Scene, meta: dict) -> House:
                  face_instance=np.concatenate(FI), face_class=np.concatenate(FC), vertex_colors=np.zeros_like(verts),
                  materials=MaterialTable.from_json(meta["materials"]), rooms=[Room(**r) for r in meta["rooms"]],
                  objects=[SceneObject.from_json(o) for o in meta["objects"]], wall_height=meta["wall_height"],
-                 doors=[tuple(d) for d in meta["doors"]])
+                 doors=[tuple(d) for d in meta["doors"]],
+                 identical_furniture=bool(meta.get("identical_furniture", False)))
 
 
 def _colors(m: trimesh.Trimesh) -> np.ndarray:
