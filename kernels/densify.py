@@ -6,9 +6,15 @@ On a grid of every ``stride``-th pixel with valid observed depth, the mask is
 
 Each masked pixel becomes one Gaussian at the back-projected depth (pixel centre, +0.5) under
 the camera pose, with the pixel's colour, scale ``pixel_scale * z / f`` (f = (fx + fy) / 2), unit
-quaternion and opacity 0.5. ``pixel_scale = 1`` is SplaTAM's one-pixel footprint; the mapper
-passes the stride, so that a Gaussian spawned for a stride x stride block covers its block. Two launches and a scan, with one host read of the count; the same
-kernels run on CPU and CUDA.
+quaternion and opacity 0.5. ``pixel_scale = 1`` is SplaTAM's one-pixel footprint. Two launches
+and a scan, with one host read of the count; the same kernels run on CPU and CUDA.
+
+``surface_aligned=True`` gives each new Gaussian the shape of the surface patch its pixel block
+sees instead: a flat ellipse in the plane of the back-projected neighbours, as long along each
+image axis as the 3-D step to the next grid pixel (times ``pixel_scale / stride``, so a
+fronto-parallel patch keeps the isotropic size) and thin along the normal. A floor seen at a
+grazing angle then covers the ground between pixel rows; isotropic Gaussians leave it as stripes
+with gaps that only a view from above shows (the NVSM's hemisphere views).
 """
 
 from __future__ import annotations
@@ -82,7 +88,7 @@ def densify_write_kernel(
 
 def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb: np.ndarray, viewmat: np.ndarray,
             K: np.ndarray, *, tau_o: float = 0.5, k: float = 50.0, stride: int = 1, pixel_scale: float = 1.0,
-            device: str = "cpu") -> dict:
+            surface_aligned: bool = False, max_stretch: float = 6.0, device: str = "cpu") -> dict:
     """New Gaussians for one frame (eq 10).
 
     Args:
@@ -94,6 +100,9 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
         tau_o, k: silhouette threshold and depth-error factor (SplaTAM: 0.5, 50).
         stride: use every stride-th pixel in x and y.
         pixel_scale: new scales are ``pixel_scale * z / f`` metres (1: one pixel, as SplaTAM).
+        surface_aligned: flat Gaussians in the local surface plane (see the module docstring);
+            max_stretch caps their length at this many times the isotropic scale (a grazing floor
+            far away); pixels without a neighbour of valid depth keep the isotropic shape.
 
     Returns:
         dict of numpy arrays: means (n, 3), colors (n, 3), log_scales (n, 3), quats (n, 4),
@@ -138,8 +147,73 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
     full[::stride, ::stride] = m
     quats = np.zeros((n, 4), np.float32)
     quats[:, 0] = 1
+    log_scales = np.repeat(log_s.numpy()[:n, None], 3, 1)
+    if surface_aligned and n:
+        log_scales, quats = _surface_shapes(depth_obs, K, stride, pixel_scale, max_stretch, m, c2w, log_scales, quats)
     return {
         "means": means.numpy()[:n].copy(), "colors": colors.numpy()[:n].copy(),
-        "log_scales": np.repeat(log_s.numpy()[:n, None], 3, 1), "quats": quats,
+        "log_scales": log_scales, "quats": quats,
         "opacity_logits": np.zeros(n, np.float32), "mask": full,
     }
+
+
+def _surface_shapes(depth: np.ndarray, K: np.ndarray, stride: int, pixel_scale: float, max_stretch: float,
+                    grid_mask: np.ndarray, c2w: np.ndarray, log_scales: np.ndarray, quats: np.ndarray):
+    """Log scales (n, 3) and wxyz quaternions (n, 4) of flat surface-aligned Gaussians for the
+    masked grid pixels (row-major, as the write kernel orders them); rows without a usable
+    neighbour keep the given isotropic shape."""
+    from scipy.spatial.transform import Rotation
+
+    H, W = depth.shape
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    ys, xs = np.mgrid[0:H:stride, 0:W:stride]
+    z = depth[ys, xs].astype(np.float64)
+    P = np.stack([(xs + 0.5 - K[0, 2]) / K[0, 0] * z, (ys + 0.5 - K[1, 2]) / K[1, 1] * z, z], -1)  # camera frame
+    iso = stride * z / f  # the 3-D step to the next grid pixel on a fronto-parallel surface
+
+    def tangent(axis: int) -> tuple[np.ndarray, np.ndarray]:
+        # the shorter of the forward and backward steps with valid depth: across a depth edge
+        # the step to the far side is long, and the other side is the surface
+        best = np.full(P.shape, np.nan)
+        best_len = np.full(z.shape, np.inf)
+        for shift in (1, -1):
+            Pn = np.roll(P, -shift, axis=axis)
+            zn = np.roll(z, -shift, axis=axis)
+            edge = np.zeros(z.shape, bool)
+            if shift == 1:
+                edge[(slice(None), -1) if axis == 1 else (-1, slice(None))] = True
+            else:
+                edge[(slice(None), 0) if axis == 1 else (0, slice(None))] = True
+            d = (Pn - P) * shift
+            length = np.linalg.norm(d, axis=-1)
+            ok = (zn > 0) & ~edge & (length > 0) & (length < best_len)
+            best[ok] = d[ok]
+            best_len[ok] = length[ok]
+        # a far floor seen edge-on: capped, so one Gaussian does not smear a whole stripe
+        cap = np.minimum(best_len, max_stretch * iso)
+        return best * (cap / np.where(np.isfinite(best_len), best_len, 1.0))[..., None], best_len
+
+    tu, lu = tangent(1)
+    tv, _ = tangent(0)
+    good = (z > 0) & np.isfinite(lu) & np.all(np.isfinite(tv), -1)
+    sel = good[grid_mask]  # masked grid pixels in write order (row-major)
+    if not sel.any():
+        return log_scales, quats
+    tu, tv = tu[grid_mask][sel], tv[grid_mask][sel]
+    e1 = tu / np.linalg.norm(tu, axis=-1, keepdims=True)
+    v_perp = tv - (tv * e1).sum(-1, keepdims=True) * e1
+    lv = np.linalg.norm(v_perp, axis=-1)
+    ok = lv > 1e-9
+    idx = np.flatnonzero(sel)[ok]
+    e1, v_perp, lv, lu_s = e1[ok], v_perp[ok], lv[ok], np.linalg.norm(tu[ok], axis=-1)
+    e2 = v_perp / lv[:, None]
+    nrm = np.cross(e1, e2)
+    R = c2w[:3, :3].astype(np.float64) @ np.stack([e1, e2, nrm], -1)  # columns: the axes in the world
+    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
+    quats = quats.copy()
+    quats[idx] = np.concatenate([q[:, 3:], q[:, :3]], 1).astype(np.float32)
+    k = pixel_scale / stride
+    su, sv = k * lu_s, k * lv
+    log_scales = log_scales.copy()
+    log_scales[idx] = np.log(np.stack([su, sv, 0.1 * np.minimum(su, sv)], -1)).astype(np.float32)
+    return log_scales, quats

@@ -38,6 +38,9 @@ class MapperConfig:
     ``submap``: optimise only the Gaussians the window's frames can see (their means inside a
     view grown by ``submap_margin`` of the image size on each side), so a step costs what the
     visible part of the map costs, not the whole house.
+    ``surface_init``: new Gaussians are flat ellipses in the local surface plane instead of
+    spheres (see :func:`splatsearch.kernels.densify.densify`): views far from the training
+    cameras (the NVSM's) see closed surfaces instead of stripes.
     """
 
     iters: int = 15
@@ -60,6 +63,7 @@ class MapperConfig:
     seed: int = 0
     submap: bool = True
     submap_margin: float = 0.5
+    surface_init: bool = False
 
     def validate(self) -> None:
         if self.window_select not in ("overlap", "recent"):
@@ -151,7 +155,7 @@ class Mapper:
         else:
             dhat, alpha = np.zeros_like(depth), np.zeros_like(depth)
         new = densify(depth, alpha, dhat, rgb, viewmat, self.K, tau_o=self.cfg.tau_o, k=self.cfg.k,
-                      stride=self.cfg.stride)
+                      stride=self.cfg.stride, surface_aligned=self.cfg.surface_init and not self.cfg.isotropic)
         new.pop("mask")
         self.map, self.opt_state, _ = append(self.map, self.opt_state, new)
         # 2. keyframes

@@ -55,6 +55,55 @@ def test_densify_stride_and_pose():
         densify(d_obs, z[:2], z, np.zeros((H, W, 3), np.float32), vm, K8)
 
 
+def _axes(out):
+    """World axes (n, 3, 3; columns) and scales (n, 3) of densified Gaussians."""
+    from scipy.spatial.transform import Rotation
+
+    q = out["quats"]
+    R = Rotation.from_quat(np.concatenate([q[:, 1:], q[:, :1]], 1)).as_matrix()
+    return R, np.exp(out["log_scales"])
+
+
+def test_densify_surface_aligned_shapes():
+    H, W = 24, 32
+    K = np.array([[40.0, 0, 16.0], [0, 40.0, 12.0], [0, 0, 1]], np.float32)
+    c2w = np.eye(4)
+    c2w[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]  # a robot camera: forward = world x, down = world -z
+    c2w[:3, 3] = [1.0, 2.0, 1.3]
+    vm = np.linalg.inv(c2w).astype(np.float32)
+    # a floor 1.3 m below the camera, seen at grazing angles in the lower half of the image
+    rows = np.arange(H)[:, None] + 0.5 - K[1, 2]
+    floor = np.where(rows > 0.5, 1.3 * K[1, 1] / np.maximum(rows, 1e-6), 0.0) * np.ones((1, W))
+    floor = floor.astype(np.float32)
+    z0 = np.zeros((H, W), np.float32)
+    rgb = np.zeros((H, W, 3), np.float32)
+    iso = densify(floor, z0, z0, rgb, vm, K, stride=2)
+    out = densify(floor, z0, z0, rgb, vm, K, stride=2, surface_aligned=True)
+    np.testing.assert_array_equal(out["mask"], iso["mask"])  # same Gaussians, same places
+    np.testing.assert_allclose(out["means"], iso["means"])
+    R, s = _axes(out)
+    thin = R[np.arange(len(s)), :, np.argmin(s, 1)]
+    assert np.all(np.abs(thin[:, 2]) > 0.99)  # the thin axis is the floor's normal (world z)
+    # flat, and longer than the isotropic footprint along the floor away from the camera
+    assert np.all(s.min(1) < 0.2 * s.max(1))
+    assert np.median(s.max(1) / np.exp(iso["log_scales"][:, 0])) > 2.0
+    assert np.all(s.max(1) <= 6.0 * np.exp(iso["log_scales"][:, 0]) * 1.0001)  # max_stretch
+    # a wall facing the camera keeps the isotropic size in its plane
+    wall = np.full((H, W), 2.0, np.float32)
+    out = densify(wall, z0, z0, rgb, vm, K, stride=2, surface_aligned=True)
+    R, s = _axes(out)
+    s_iso = np.exp(densify(wall, z0, z0, rgb, vm, K, stride=2)["log_scales"])
+    np.testing.assert_allclose(np.sort(s, 1)[:, 1:], s_iso[:, 1:], rtol=1e-4)
+    thin = R[np.arange(len(s)), :, np.argmin(s, 1)]
+    assert np.all(np.abs(thin @ c2w[:3, 2]) > 0.99)  # the normal looks back at the camera
+    # at a depth edge the shape comes from the pixel's own side, not from the step across
+    edge = wall.copy()
+    edge[:, W // 2:] = 5.0
+    _, s = _axes(densify(edge, z0, z0, rgb, vm, K, stride=2, surface_aligned=True))
+    s_iso = np.exp(densify(edge, z0, z0, rgb, vm, K, stride=2)["log_scales"])
+    np.testing.assert_allclose(s.max(1), s_iso[:, 0], rtol=1e-4)
+
+
 def _small_frames(n=3, w=64, h=48):
     from splatsearch.datasets import sim_trajectory
 

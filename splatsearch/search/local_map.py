@@ -39,6 +39,8 @@ class LocalMapConfig:
         capacity: initial Gaussian capacity (grows by doubling).
         min_separation: metres; an observation closer than this to a kept one (camera centres)
             with a heading within 20 degrees replaces it instead of adding a viewpoint.
+        surface_init: start Gaussians as flat ellipses in the surface plane
+            (:attr:`splatsearch.mapper.MapperConfig.surface_init`).
     """
 
     margin: float = 3.0
@@ -48,6 +50,7 @@ class LocalMapConfig:
     stride: int = 2
     capacity: int = 16384
     min_separation: float = 0.3
+    surface_init: bool = True
 
     def __post_init__(self):
         if not (self.margin >= 0 and self.max_frames >= 1 and self.iters_per_frame >= 0 and self.refine_iters >= 0
@@ -140,7 +143,7 @@ def build_local_map(frames: Sequence[Frame], K: np.ndarray, width: int, height: 
     lo, hi = np.asarray(lo, np.float32), np.asarray(hi, np.float32)
     mapper = Mapper(K, width, height, MapperConfig(
         iters=cfg.iters_per_frame, stride=cfg.stride, window=max(2, len(frames)), keyframe_every=1,
-        window_select="recent", initial_capacity=cfg.capacity, seed=seed))
+        window_select="recent", initial_capacity=cfg.capacity, seed=seed, surface_init=cfg.surface_init))
     for f in frames:
         rgb, depth = region_frame(f.rgb, f.depth, f.viewmat, K, lo, hi)
         mapper.update(rgb, depth, f.viewmat)
