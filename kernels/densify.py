@@ -149,7 +149,8 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
     quats[:, 0] = 1
     log_scales = np.repeat(log_s.numpy()[:n, None], 3, 1)
     if surface_aligned and n:
-        log_scales, quats = _surface_shapes(depth_obs, K, stride, pixel_scale, max_stretch, m, c2w, log_scales, quats)
+        log_scales, quats = _surface_shapes(depth_obs, K, viewmat, stride, pixel_scale, max_stretch, m, log_scales,
+                                             quats)
     return {
         "means": means.numpy()[:n].copy(), "colors": colors.numpy()[:n].copy(),
         "log_scales": log_scales, "quats": quats,
@@ -157,63 +158,54 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
     }
 
 
-def _surface_shapes(depth: np.ndarray, K: np.ndarray, stride: int, pixel_scale: float, max_stretch: float,
-                    grid_mask: np.ndarray, c2w: np.ndarray, log_scales: np.ndarray, quats: np.ndarray):
+def _surface_shapes(depth: np.ndarray, K: np.ndarray, viewmat: np.ndarray, stride: int, pixel_scale: float,
+                    max_stretch: float, grid_mask: np.ndarray, log_scales: np.ndarray, quats: np.ndarray):
     """Log scales (n, 3) and wxyz quaternions (n, 4) of flat surface-aligned Gaussians for the
     masked grid pixels (row-major, as the write kernel orders them); rows without a usable
     neighbour keep the given isotropic shape."""
     from scipy.spatial.transform import Rotation
 
+    from splatsearch.camera import pixels_to_world
+
     H, W = depth.shape
-    f = 0.5 * (K[0, 0] + K[1, 1])
     ys, xs = np.mgrid[0:H:stride, 0:W:stride]
     z = depth[ys, xs].astype(np.float64)
-    P = np.stack([(xs + 0.5 - K[0, 2]) / K[0, 0] * z, (ys + 0.5 - K[1, 2]) / K[1, 1] * z, z], -1)  # camera frame
-    iso = stride * z / f  # the 3-D step to the next grid pixel on a fronto-parallel surface
+    P = pixels_to_world(xs, ys, z, viewmat, K)
+    iso = stride * z / (0.5 * (K[0, 0] + K[1, 1]))  # the 3-D grid step on a fronto-parallel surface
 
-    def tangent(axis: int) -> tuple[np.ndarray, np.ndarray]:
-        # the shorter of the forward and backward steps with valid depth: across a depth edge
-        # the step to the far side is long, and the other side is the surface
-        best = np.full(P.shape, np.nan)
-        best_len = np.full(z.shape, np.inf)
-        for shift in (1, -1):
-            Pn = np.roll(P, -shift, axis=axis)
-            zn = np.roll(z, -shift, axis=axis)
-            edge = np.zeros(z.shape, bool)
-            if shift == 1:
-                edge[(slice(None), -1) if axis == 1 else (-1, slice(None))] = True
-            else:
-                edge[(slice(None), 0) if axis == 1 else (0, slice(None))] = True
-            d = (Pn - P) * shift
-            length = np.linalg.norm(d, axis=-1)
-            ok = (zn > 0) & ~edge & (length > 0) & (length < best_len)
-            best[ok] = d[ok]
-            best_len[ok] = length[ok]
+    def tangent(P: np.ndarray, z: np.ndarray, iso: np.ndarray) -> np.ndarray:
+        """Step (gh, gw, 3) to the next grid pixel along axis 1, NaN without a valid neighbour."""
+        step = P[:, 1:] - P[:, :-1]
+        step[~((z[:, 1:] > 0) & (z[:, :-1] > 0))] = np.nan
+        pad = np.full_like(P[:, :1], np.nan)
+        fwd, bwd = np.concatenate([step, pad], 1), np.concatenate([pad, step], 1)
+        lf, lb = np.linalg.norm(fwd, axis=-1), np.linalg.norm(bwd, axis=-1)
+        # the shorter of the forward and backward steps: across a depth edge the step to the far
+        # side is long, and the other side is the surface
+        back = np.isnan(lf) | (lb < lf)
+        t, length = np.where(back[..., None], bwd, fwd), np.where(back, lb, lf)
         # a far floor seen edge-on: capped, so one Gaussian does not smear a whole stripe
-        cap = np.minimum(best_len, max_stretch * iso)
-        return best * (cap / np.where(np.isfinite(best_len), best_len, 1.0))[..., None], best_len
+        return t * (np.minimum(length, max_stretch * iso) / length)[..., None]
 
-    tu, lu = tangent(1)
-    tv, _ = tangent(0)
-    good = (z > 0) & np.isfinite(lu) & np.all(np.isfinite(tv), -1)
+    tu = tangent(P, z, iso)
+    tv = tangent(P.swapaxes(0, 1), z.T, iso.T).swapaxes(0, 1)
+    good = (z > 0) & np.all(np.isfinite(tu), -1) & np.all(np.isfinite(tv), -1)
     sel = good[grid_mask]  # masked grid pixels in write order (row-major)
     if not sel.any():
         return log_scales, quats
     tu, tv = tu[grid_mask][sel], tv[grid_mask][sel]
-    e1 = tu / np.linalg.norm(tu, axis=-1, keepdims=True)
+    lu = np.linalg.norm(tu, axis=-1)
+    e1 = tu / lu[:, None]
     v_perp = tv - (tv * e1).sum(-1, keepdims=True) * e1
     lv = np.linalg.norm(v_perp, axis=-1)
     ok = lv > 1e-9
     idx = np.flatnonzero(sel)[ok]
-    e1, v_perp, lv, lu_s = e1[ok], v_perp[ok], lv[ok], np.linalg.norm(tu[ok], axis=-1)
-    e2 = v_perp / lv[:, None]
-    nrm = np.cross(e1, e2)
-    R = c2w[:3, :3].astype(np.float64) @ np.stack([e1, e2, nrm], -1)  # columns: the axes in the world
+    e1, e2, lu, lv = e1[ok], v_perp[ok] / lv[ok, None], lu[ok], lv[ok]
+    R = np.stack([e1, e2, np.cross(e1, e2)], -1)  # columns: the ellipse's axes in the world
     q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
     quats = quats.copy()
     quats[idx] = np.concatenate([q[:, 3:], q[:, :3]], 1).astype(np.float32)
-    k = pixel_scale / stride
-    su, sv = k * lu_s, k * lv
+    su, sv = (pixel_scale / stride) * lu, (pixel_scale / stride) * lv
     log_scales = log_scales.copy()
     log_scales[idx] = np.log(np.stack([su, sv, 0.1 * np.minimum(su, sv)], -1)).astype(np.float32)
     return log_scales, quats

@@ -175,12 +175,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                              f"{r['steps']} steps {r['wall_time']:.0f} s")
 
         kw = {} if variants is None else {"variants": variants}
+        overrides = {"appearance": False} if args.no_appearance else None
         _, summary = evaluate(args.split, args.episodes, args.seed, workers=args.workers, out=args.out,
                               max_steps=args.max_steps, progress=progress, resume=args.resume,
                               identical_furniture=args.identical_furniture,
-                              agent_overrides={"appearance": False} if args.no_appearance else None, **kw)
+                              agent_overrides=overrides, **kw)
     console.print(markdown_table(summary, eval_title(args.split, args.episodes, args.seed, args.identical_furniture,
-                                                     {"appearance": False} if args.no_appearance else None)))
+                                                     overrides)))
     console.print(f"wrote {args.out}/results.json, summary.json, summary.md")
     return 0
 

@@ -250,7 +250,7 @@ def make_episodes(house: House, n: int, split: str = "val", seed: int = 0, *, en
             goal_instance_id=obj.instance_id, goal_class=obj.class_name,
             goal_viewmat=np.asarray(vm, float).tolist(), goal_K=intrinsics(width, height).tolist(),
             goal_width=width, goal_height=height, d_star=d_star,
-            identical_furniture=bool(getattr(house, "identical_furniture", False))))
+            identical_furniture=house.identical_furniture))
     return episodes
 
 
