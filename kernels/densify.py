@@ -117,6 +117,8 @@ def densify(depth_obs: np.ndarray, alpha: np.ndarray, depth_hat: np.ndarray, rgb
         raise ValueError(f"stride must be >= 1, got {stride}")
     if not pixel_scale > 0:
         raise ValueError(f"pixel_scale must be > 0, got {pixel_scale}")
+    if not max_stretch > 0:
+        raise ValueError(f"max_stretch must be > 0, got {max_stretch}")
     valid = depth_obs > 0
     err = np.abs(depth_obs - np.asarray(depth_hat, np.float32))[valid]
     thresh = float(k * np.median(err)) if err.size else np.inf

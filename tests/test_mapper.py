@@ -102,6 +102,8 @@ def test_densify_surface_aligned_shapes():
     _, s = _axes(densify(edge, z0, z0, rgb, vm, K, stride=2, surface_aligned=True))
     s_iso = np.exp(densify(edge, z0, z0, rgb, vm, K, stride=2)["log_scales"])
     np.testing.assert_allclose(s.max(1), s_iso[:, 0], rtol=1e-4)
+    with pytest.raises(ValueError, match="max_stretch"):
+        densify(wall, z0, z0, rgb, vm, K, stride=2, surface_aligned=True, max_stretch=0.0)
 
 
 def _small_frames(n=3, w=64, h=48):
