@@ -55,7 +55,12 @@ from splatsearch.search.local_map import (
     build_local_map,
     region_box,
 )
-from splatsearch.search.matching import DEFAULT_TAU_M, Matcher, SIFTMatcher
+from splatsearch.search.matching import (
+    DEFAULT_TAU_M,
+    RENDER_CONTRAST_THRESHOLD,
+    Matcher,
+    SIFTMatcher,
+)
 from splatsearch.search.novel_views import clear_viewpoints, hemisphere_viewpoints
 from splatsearch.search.object_search import NVSMConfig, verify_object
 from splatsearch.search.objects import (
@@ -209,7 +214,11 @@ class SplatSearchAgent:
         start_pose: (x, y, yaw) where the episode starts (centres the grid maps).
         config: :class:`AgentConfig`; detector / matcher / inpainter / encoder / appearance_model:
             plug-ins (offline defaults: simulator masks, SIFT + RANSAC, OpenCV Telea,
-            colour+texture, masked hue-saturation histogram).
+            colour+texture, masked hue-saturation histogram). ``matcher`` scores the camera
+            images around detections; ``nvsm_matcher`` scores the rendered novel views (default:
+            ``matcher`` when one is given, else SIFT with
+            :data:`~splatsearch.search.matching.RENDER_CONTRAST_THRESHOLD`, because renders of a
+            Gaussian map are softer than camera images).
         goal_mask: (H, W) bool, the goal object's pixels in the goal image. Without it the
             detector is run on the goal image (``goal_frame`` is passed to it: the simulator
             detector needs the goal image's frame); without either the appearance cue is off.
@@ -219,7 +228,7 @@ class SplatSearchAgent:
                  config: AgentConfig | None = None, detector: Detector | None = None,
                  matcher: Matcher | None = None, inpainter: Inpainter | None = None,
                  encoder: ImageEncoder | None = None, goal_mask: np.ndarray | None = None, goal_frame=None,
-                 appearance_model: AppearanceModel | None = None):
+                 appearance_model: AppearanceModel | None = None, nvsm_matcher: Matcher | None = None):
         self.cfg = cfg = config or AgentConfig()
         self.K = np.asarray(K, np.float64)
         self.W, self.H = int(width), int(height)
@@ -232,6 +241,7 @@ class SplatSearchAgent:
         use_appearance = cfg.appearance and cfg.variant != "no_appearance"
         self._goal_sig = self._goal_signature(goal_mask, goal_frame) if use_appearance else None
         self.matcher = matcher or SIFTMatcher()
+        self.nvsm_matcher = nvsm_matcher or matcher or SIFTMatcher(contrast_threshold=RENDER_CONTRAST_THRESHOLD)
         self.inpainter = inpainter or OpenCVInpainter()
         only_alpha = cfg.variant in ("nearest_frontier", "gaussnav")
         ecfg = ExplorationConfig(alpha=cfg.alpha, beta=0.0 if only_alpha else cfg.beta,
@@ -430,14 +440,14 @@ class SplatSearchAgent:
         if cfg.nvsm_map == "local" and obs and e.bbox_min is not None:
             lo, hi = region_box(e.bbox_min, e.bbox_max, cfg.local_map.margin)
             gmap = build_local_map(obs, self.K, self.W, self.H, lo, hi, cfg.local_map, seed=cfg.seed)
-            score = verify_object(self.goal, gmap, e.centroid, self.K, self.W, self.H, matcher=self.matcher,
+            score = verify_object(self.goal, gmap, e.centroid, self.K, self.W, self.H, matcher=self.nvsm_matcher,
                                   inpainter=self.inpainter, config=self._nvsm_local, bbox=(lo, hi),
                                   viewmats=self._nvsm_viewpoints(e))
         else:
             # the whole map is rendered, not a crop around the object: the goal image shows the
             # object in its surroundings, and those surroundings carry many of the matches
             score = verify_object(self.goal, self.mapper.map, e.centroid, self.K, self.W, self.H,
-                                  matcher=self.matcher, inpainter=self.inpainter, config=self._nvsm,
+                                  matcher=self.nvsm_matcher, inpainter=self.inpainter, config=self._nvsm,
                                   viewmats=self._nvsm_viewpoints(e))
         self.db.record_match(eid, float(score.e_max), score.i_star, cfg.tau_m, score.viewmats[score.i_star])
         self.nvsm_runs += 1

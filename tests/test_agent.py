@@ -218,6 +218,23 @@ def test_agent_without_a_goal_mask_falls_back_to_feature_matching(episode):
         AgentConfig(tau_a=0.1, appearance_veto=0.2)
 
 
+def test_agent_matches_renders_and_camera_images_with_their_own_sift_settings(episode):
+    from splatsearch.search import RENDER_CONTRAST_THRESHOLD, SIFTMatcher
+
+    ep, env = episode
+    goal = np.zeros((240, 320, 3), np.float32)
+    agent = SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, ep.start)
+    assert agent.matcher.contrast_threshold == 0.04  # camera images: OpenCV's default
+    assert agent.nvsm_matcher.contrast_threshold == RENDER_CONTRAST_THRESHOLD < 0.04
+    mine = SIFTMatcher(ratio=0.7)  # a user's matcher serves both unless an NVSM one is given
+    agent = SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, ep.start, matcher=mine)
+    assert agent.matcher is mine and agent.nvsm_matcher is mine
+    other = SIFTMatcher(ratio=0.8)
+    agent = SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, ep.start, matcher=mine,
+                             nvsm_matcher=other)
+    assert agent.matcher is mine and agent.nvsm_matcher is other
+
+
 def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
     from splatsearch.nav.fmm import Plan
 

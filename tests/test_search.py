@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -451,6 +452,18 @@ def test_sift_matcher_separates_same_from_other_instance(env, a_id, b_id):
     assert m.count(a1, a2) == same and SIFTMatcher().count(a1, a2) == same
 
 
+@pytest.mark.parametrize("a_id, b_id", [(47, 35), (48, 34)])
+def test_render_contrast_threshold_keeps_matches_on_soft_views(env, a_id, b_id):
+    # a render of a Gaussian map is softer than a camera image; blur stands in for it here
+    a1, a2, b = _pair_views(env, a_id, b_id)
+    soft_same, soft_other = (cv2.GaussianBlur(x, (0, 0), 1.5) for x in (a2, b))
+    cam, ren = SIFTMatcher(), SIFTMatcher(contrast_threshold=search.RENDER_CONTRAST_THRESHOLD)
+    assert len(ren.features(soft_same)[0]) > 2 * len(cam.features(soft_same)[0])
+    same = ren.count(a1, soft_same)
+    assert same > 2 * cam.count(a1, soft_same) and same >= DEFAULT_TAU_M
+    assert ren.count(a1, soft_other) < DEFAULT_TAU_M
+
+
 def test_best_view_picks_the_argmax(env):
     a1, a2, b = _pair_views(env, 47, 35)
     bv = best_view(a1, np.stack([b, a2, np.full((H, W, 3), 0.5, np.float32)]), SIFTMatcher())
@@ -467,7 +480,8 @@ def test_matching_bad_input():
         m.count(img, np.full_like(img, np.nan))
     with pytest.raises(ValueError, match="at least one"):
         best_view(img, [], m)
-    for kw in ({"ratio": 1.2}, {"ransac_thresh": 0}, {"model": "affine"}, {"min_matches": 2}):
+    for kw in ({"ratio": 1.2}, {"ransac_thresh": 0}, {"model": "affine"}, {"min_matches": 2},
+               {"contrast_threshold": 0.0}, {"contrast_threshold": 1.5}):
         with pytest.raises(ValueError):
             SIFTMatcher(**kw)
     with pytest.raises(ValueError, match="differ"):

@@ -36,6 +36,7 @@ from .inpainting import (
 )
 from .matching import (
     DEFAULT_TAU_M,
+    RENDER_CONTRAST_THRESHOLD,
     BestView,
     LoFTRMatcher,
     Matcher,
@@ -60,6 +61,7 @@ from .objects import (
 __all__ = [
     "COCO_TO_GOAL",
     "DEFAULT_TAU_M",
+    "RENDER_CONTRAST_THRESHOLD",
     "AddResult",
     "AppearanceModel",
     "BestView",

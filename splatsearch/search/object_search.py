@@ -16,7 +16,13 @@ import numpy as np
 
 from .detection import Detection, Detector
 from .inpainting import Inpainter, OpenCVInpainter, holes_from_alpha, split_holes
-from .matching import DEFAULT_TAU_M, Matcher, SIFTMatcher, best_view
+from .matching import (
+    DEFAULT_TAU_M,
+    RENDER_CONTRAST_THRESHOLD,
+    Matcher,
+    SIFTMatcher,
+    best_view,
+)
 from .novel_views import crop_box_for, hemisphere_viewpoints, render_novel_views
 from .objects import (
     AddResult,
@@ -91,14 +97,16 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
         gmap: the Gaussian map (or its ``render_args()`` tuple).
         centroid: (3,) object centroid in metres.
         K, width, height: the NVSM camera (intrinsics in pixels, image size).
-        matcher, inpainter: defaults :class:`SIFTMatcher` / :class:`OpenCVInpainter`.
+        matcher, inpainter: defaults :class:`SIFTMatcher` (with the contrast threshold for renders,
+            :data:`~splatsearch.search.matching.RENDER_CONTRAST_THRESHOLD`) /
+            :class:`OpenCVInpainter`.
         config: :class:`NVSMConfig`.
         bbox: (min (3,), max (3,)) object extent in metres, used when ``config.crop``.
         viewmats: optional (V, 4, 4) cameras to use instead of ``config``'s hemisphere (e.g. the
             hemisphere cameras that :func:`~splatsearch.search.novel_views.clear_viewpoints` kept).
     """
     cfg = config or NVSMConfig()
-    matcher = matcher or SIFTMatcher()
+    matcher = matcher or SIFTMatcher(contrast_threshold=RENDER_CONTRAST_THRESHOLD)
     inpainter = inpainter or OpenCVInpainter()
     if viewmats is None:
         vms = hemisphere_viewpoints(centroid, cfg.radius, cfg.n_views, cfg.elevations_deg)
@@ -130,7 +138,8 @@ class ObjectSearch:
         detector: any :class:`Detector`.
         labels: detection labels to track (e.g. just the goal class); None tracks all.
         db: the object database (default :class:`ObjectDB` with its defaults).
-        matcher, inpainter, nvsm: verification settings (see :func:`verify_object`).
+        matcher, inpainter, nvsm: verification settings (see :func:`verify_object`; the default
+            matcher is SIFT with the contrast threshold for renders).
         erode_px: mask erosion before lifting.
     """
 
@@ -144,7 +153,7 @@ class ObjectSearch:
         self.detector = detector
         self.labels = None if labels is None else set(labels)
         self.db = db if db is not None else ObjectDB()
-        self.matcher = matcher or SIFTMatcher()
+        self.matcher = matcher or SIFTMatcher(contrast_threshold=RENDER_CONTRAST_THRESHOLD)
         self.inpainter = inpainter or OpenCVInpainter()
         self.nvsm = nvsm or NVSMConfig()
         self.erode_px = int(erode_px)
