@@ -58,6 +58,7 @@ from splatsearch.search.local_map import (
 from splatsearch.search.matching import (
     DEFAULT_TAU_M,
     RENDER_CONTRAST_THRESHOLD,
+    RENDER_TAU_M,
     Matcher,
     SIFTMatcher,
 )
@@ -98,7 +99,10 @@ class AgentConfig:
     0.52 s at 160x120 with 10 steps) keep the online map cheap: it serves lifting and the viewer,
     while the NVSM renders full-resolution local maps of each object (``nvsm_map="local"``).
     tau_m, f_O, tau_d: match threshold (inliers), NVSM trigger period (viewpoints), merge
-    distance (m). n_views, view_radius (m), view_elevations_deg, inpaint_tau: the NVSM.
+    distance (m). nvsm_tau_m: the threshold for the counts on rendered novel views, which are
+    matched with a lower SIFT contrast threshold than camera images and so have a higher noise
+    floor (see :data:`~splatsearch.search.matching.RENDER_TAU_M`); an NVSM count is recorded as
+    ``e_max * tau_m / nvsm_tau_m`` so that one e_max and one tau_m serve eq 18 and eq 20. n_views, view_radius (m), view_elevations_deg, inpaint_tau: the NVSM.
     clear_views: keep only hemisphere cameras over known free space with a clear line of sight to
     the object on the occupancy grid (cameras behind a wall see only its back).
     nvsm_map: "local" renders the NVSM views from a full-resolution map of the object's region
@@ -137,6 +141,7 @@ class AgentConfig:
     map_iters: int = 5
     map_stride: int = 2
     tau_m: float = DEFAULT_TAU_M
+    nvsm_tau_m: float = RENDER_TAU_M
     f_O: int = 3
     tau_d: float = 1.0
     n_views: int = 12
@@ -172,6 +177,8 @@ class AgentConfig:
             raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
         if self.nvsm_map not in ("local", "global"):
             raise ValueError(f"nvsm_map must be 'local' or 'global', got {self.nvsm_map!r}")
+        if not (self.tau_m > 0 and self.nvsm_tau_m > 0):
+            raise ValueError(f"need tau_m > 0 and nvsm_tau_m > 0, got {self.tau_m}, {self.nvsm_tau_m}")
         if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
             raise ValueError("need map_every >= 1, 0 < map_scale <= 1 and n_views >= 1")
         if not (0 <= self.appearance_veto <= self.tau_a <= 1) or self.appearance_min_views < 1 \
@@ -265,7 +272,7 @@ class SplatSearchAgent:
         self.db = ObjectDB(tau_d=cfg.tau_d, f_O=cfg.f_O)
         self._nvsm = NVSMConfig(radius=cfg.view_radius, n_views=cfg.n_views,
                                 elevations_deg=tuple(cfg.view_elevations_deg), alpha_tau=cfg.inpaint_tau,
-                                tau_m=cfg.tau_m, inpaint=cfg.variant != "no_inpaint")
+                                tau_m=cfg.nvsm_tau_m, inpaint=cfg.variant != "no_inpaint")
         # a local map holds only the object's region: what lies outside it is background to fill
         # flat, not holes to inpaint
         self._nvsm_local = replace(self._nvsm, crop=True, crop_margin=0.0, floor_z=None)
@@ -449,7 +456,9 @@ class SplatSearchAgent:
             score = verify_object(self.goal, self.mapper.map, e.centroid, self.K, self.W, self.H,
                                   matcher=self.nvsm_matcher, inpainter=self.inpainter, config=self._nvsm,
                                   viewmats=self._nvsm_viewpoints(e))
-        self.db.record_match(eid, float(score.e_max), score.i_star, cfg.tau_m, score.viewmats[score.i_star])
+        # on the camera-image scale, so eq 18's tau_m and eq 20's scores treat both kinds alike
+        scaled = float(score.e_max) * cfg.tau_m / cfg.nvsm_tau_m
+        self.db.record_match(eid, scaled, score.i_star, cfg.tau_m, score.viewmats[score.i_star])
         self.nvsm_runs += 1
         self.last_views = NovelViews(eid, score.viewmats, score.rendered, score.images, score.counts, score.i_star)
 

@@ -235,6 +235,33 @@ def test_agent_matches_renders_and_camera_images_with_their_own_sift_settings(ep
     assert agent.matcher is mine and agent.nvsm_matcher is other
 
 
+def test_nvsm_counts_are_judged_against_their_own_threshold(episode, monkeypatch):
+    import splatsearch.agent as agent_mod
+    from splatsearch.search import NVSMResult
+
+    ep, env = episode
+    with pytest.raises(ValueError, match="nvsm_tau_m"):
+        AgentConfig(nvsm_tau_m=0)
+    cfg = AgentConfig(tau_m=15, nvsm_tau_m=20, nvsm_map="global", clear_views=False)
+    agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
+                             ep.start, config=cfg)
+    counts = iter([16, 24])
+
+    def fake_verify(goal, gmap, centroid, K, width, height, **kw):
+        assert kw["matcher"] is agent.nvsm_matcher and kw["config"].tau_m == 20
+        n = next(counts)
+        return NVSMResult(0, n, np.array([n]), n >= 20, np.eye(4)[None], np.zeros((1, 4, 4, 3)),
+                          np.zeros((1, 4, 4), bool), np.zeros((1, 4, 4, 3)))
+
+    monkeypatch.setattr(agent_mod, "verify_object", fake_verify)
+    r = agent.db.add(ep.goal_class, [0.0, 0.0, 0.5], np.asarray(ep.start, float))
+    agent._run_nvsm(r.entry_id)  # 16 render inliers: above tau_m, below nvsm_tau_m
+    e = agent.db[r.entry_id]
+    assert e.e_max == pytest.approx(16 * 15 / 20) and not e.matched
+    agent._run_nvsm(r.entry_id)
+    assert e.e_max == pytest.approx(24 * 15 / 20) and e.matched and agent.nvsm_runs == 2
+
+
 def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
     from splatsearch.nav.fmm import Plan
 

@@ -37,6 +37,7 @@ from .inpainting import (
 from .matching import (
     DEFAULT_TAU_M,
     RENDER_CONTRAST_THRESHOLD,
+    RENDER_TAU_M,
     BestView,
     LoFTRMatcher,
     Matcher,
@@ -62,6 +63,7 @@ __all__ = [
     "COCO_TO_GOAL",
     "DEFAULT_TAU_M",
     "RENDER_CONTRAST_THRESHOLD",
+    "RENDER_TAU_M",
     "AddResult",
     "AppearanceModel",
     "BestView",
