@@ -100,9 +100,10 @@ class AgentConfig:
     while the NVSM renders full-resolution local maps of each object (``nvsm_map="local"``).
     tau_m, f_O, tau_d: match threshold (inliers), NVSM trigger period (viewpoints), merge
     distance (m). nvsm_tau_m: the threshold for the counts on rendered novel views, which are
-    matched with a lower SIFT contrast threshold than camera images and so have a higher noise
-    floor (see :data:`~splatsearch.search.matching.RENDER_TAU_M`); an NVSM count is recorded as
-    ``e_max * tau_m / nvsm_tau_m`` so that one e_max and one tau_m serve eq 18 and eq 20. n_views, view_radius (m), view_elevations_deg, inpaint_tau: the NVSM.
+    matched with a lower SIFT contrast threshold than camera images (default 15, as tau_m; 20
+    was measured and lost SPL, see :data:`~splatsearch.search.matching.RENDER_TAU_M`); an NVSM
+    count is recorded as ``e_max * tau_m / nvsm_tau_m`` so that one e_max and one tau_m serve
+    eq 18 and eq 20. n_views, view_radius (m), view_elevations_deg, inpaint_tau: the NVSM.
     clear_views: keep only hemisphere cameras over known free space with a clear line of sight to
     the object on the occupancy grid (cameras behind a wall see only its back).
     nvsm_map: "local" renders the NVSM views from a full-resolution map of the object's region
