@@ -33,8 +33,8 @@ instances reached at most 7 inliers at 0.04, but 15-30 at 0.03 in one episode. S
 matches with 0.02 and camera images with 0.04.
 
 Threshold for those render counts (:data:`RENDER_TAU_M`, the agent's ``nvsm_tau_m``): 15, the
-same as tau_m. The lower contrast threshold also raises the noise floor: on 35 objects stored in
-9 look-alike dev episodes (houses 3, 5, 6, 7, 8; the agent's cropped, inpainted views), the 24
+same as tau_m. The lower contrast threshold also raises the noise floor: on 34 objects stored in
+10 look-alike dev episodes (houses 3, 5, 6, 7, 8; the agent's cropped, inpainted views), the 23
 other objects reached at most 13 at 0.02 (8 at 0.04) and the 11 goal entries 41, 77, 33, 23, 17,
 16, 13, 8, 8, 7, 7 (at 0.04 only one passed 11). On the same 50 look-alike evaluation episodes
 (feature matching only):
