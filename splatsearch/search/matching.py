@@ -36,8 +36,8 @@ Threshold for those render counts (:data:`RENDER_TAU_M`, the agent's ``nvsm_tau_
 same as tau_m. The lower contrast threshold also raises the noise floor: on 34 objects stored in
 10 look-alike dev episodes (houses 3, 5, 6, 7, 8; the agent's cropped, inpainted views), the 23
 other objects reached at most 13 at 0.02 (8 at 0.04) and the 11 goal entries 41, 77, 33, 23, 17,
-16, 13, 8, 8, 7, 7 (at 0.04 only one passed 11). On the same 50 look-alike evaluation episodes
-(feature matching only):
+16, 13, 8, 8, 7, 7 (at 0.04 only one passed 11). On 50 look-alike val-hard evaluation episodes
+(seed 0, evaluation houses, feature matching only):
 
 - contrast 0.04, threshold 15 (before): SR 0.840, SPL 0.254, median 63.3 s per episode;
 - contrast 0.02, threshold 15: SR 0.780, SPL 0.302, median 43.5 s;
