@@ -57,7 +57,6 @@ from splatsearch.search.local_map import (
 )
 from splatsearch.search.matching import (
     DEFAULT_TAU_M,
-    RENDER_CONTRAST_THRESHOLD,
     RENDER_TAU_M,
     Matcher,
     SIFTMatcher,
@@ -249,7 +248,7 @@ class SplatSearchAgent:
         use_appearance = cfg.appearance and cfg.variant != "no_appearance"
         self._goal_sig = self._goal_signature(goal_mask, goal_frame) if use_appearance else None
         self.matcher = matcher or SIFTMatcher()
-        self.nvsm_matcher = nvsm_matcher or matcher or SIFTMatcher(contrast_threshold=RENDER_CONTRAST_THRESHOLD)
+        self.nvsm_matcher = nvsm_matcher or matcher or SIFTMatcher.for_renders()
         self.inpainter = inpainter or OpenCVInpainter()
         only_alpha = cfg.variant in ("nearest_frontier", "gaussnav")
         ecfg = ExplorationConfig(alpha=cfg.alpha, beta=0.0 if only_alpha else cfg.beta,

@@ -457,7 +457,8 @@ def test_render_contrast_threshold_keeps_matches_on_soft_views(env, a_id, b_id):
     # a render of a Gaussian map is softer than a camera image; blur stands in for it here
     a1, a2, b = _pair_views(env, a_id, b_id)
     soft_same, soft_other = (cv2.GaussianBlur(x, (0, 0), 1.5) for x in (a2, b))
-    cam, ren = SIFTMatcher(), SIFTMatcher(contrast_threshold=search.RENDER_CONTRAST_THRESHOLD)
+    cam, ren = SIFTMatcher(), SIFTMatcher.for_renders()
+    assert ren.contrast_threshold == search.RENDER_CONTRAST_THRESHOLD
     assert len(ren.features(soft_same)[0]) > 2 * len(cam.features(soft_same)[0])
     same = ren.count(a1, soft_same)
     assert same > 2 * cam.count(a1, soft_same) and same >= DEFAULT_TAU_M

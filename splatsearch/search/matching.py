@@ -160,6 +160,12 @@ class SIFTMatcher:
         self._sift = None
         self._cache: dict[bytes, tuple] = {}
 
+    @classmethod
+    def for_renders(cls, **kwargs) -> SIFTMatcher:
+        """A matcher for rendered novel views: :data:`RENDER_CONTRAST_THRESHOLD`, other arguments
+        as given (see the module docstring for why renders need a lower contrast threshold)."""
+        return cls(contrast_threshold=RENDER_CONTRAST_THRESHOLD, **kwargs)
+
     def features(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """(keypoint pixel coordinates (K, 2), descriptors (K, 128) float32 or None)."""
         import cv2

@@ -18,7 +18,6 @@ from .detection import Detection, Detector
 from .inpainting import Inpainter, OpenCVInpainter, holes_from_alpha, split_holes
 from .matching import (
     DEFAULT_TAU_M,
-    RENDER_CONTRAST_THRESHOLD,
     Matcher,
     SIFTMatcher,
     best_view,
@@ -106,7 +105,7 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
             hemisphere cameras that :func:`~splatsearch.search.novel_views.clear_viewpoints` kept).
     """
     cfg = config or NVSMConfig()
-    matcher = matcher or SIFTMatcher(contrast_threshold=RENDER_CONTRAST_THRESHOLD)
+    matcher = matcher or SIFTMatcher.for_renders()
     inpainter = inpainter or OpenCVInpainter()
     if viewmats is None:
         vms = hemisphere_viewpoints(centroid, cfg.radius, cfg.n_views, cfg.elevations_deg)
@@ -153,7 +152,7 @@ class ObjectSearch:
         self.detector = detector
         self.labels = None if labels is None else set(labels)
         self.db = db if db is not None else ObjectDB()
-        self.matcher = matcher or SIFTMatcher(contrast_threshold=RENDER_CONTRAST_THRESHOLD)
+        self.matcher = matcher or SIFTMatcher.for_renders()
         self.inpainter = inpainter or OpenCVInpainter()
         self.nvsm = nvsm or NVSMConfig()
         self.erode_px = int(erode_px)
