@@ -81,6 +81,12 @@ MATCH_CROP_MARGIN = 1.0
 #: is used (the coarse online map has not resolved the object yet).
 LIFT_TOLERANCE = 0.5
 
+#: hysteresis of the end-of-exploration fallback (:meth:`SplatSearchAgent._choose_fallback`): another
+#: entry replaces the current one only when its appearance is higher by more than this, or when it
+#: is about as similar and has at least ``FALLBACK_MATCH_MARGIN`` more matches (camera-image scale)
+FALLBACK_APPEARANCE_MARGIN = 0.05
+FALLBACK_MATCH_MARGIN = 2.0
+
 #: the thesis' Table IV rows (the evaluation's default) and ``no_appearance``: the full system
 #: identifying by feature matches alone, as the thesis does
 VARIANTS = ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav", "no_appearance")
@@ -423,8 +429,31 @@ class SplatSearchAgent:
         e_max). gaussnav identifies only once it has explored everything."""
         if not self._identifies_now():
             return []
-        out = [e for e in self.db if e.id not in self._given_up and (self.is_goal(e) or e.id == self._fallback)]
+        out = [e for e in self.db if e.id not in self._given_up and self.is_goal(e)]
         return sorted(out, key=lambda e: (-e.appearance, -e.e_max))
+
+    def _choose_fallback(self) -> ObjectEntry | None:
+        """Once everything is explored and nothing passed tau_m: the goal-class entry with the
+        best evidence (appearance, then e_max, then the best single-view colour similarity), or
+        None when there is none. It is chosen again every step, because walking to it shows the
+        other entries again and their e_max can overtake it; the current choice is kept unless
+        another entry beats it by ``FALLBACK_APPEARANCE_MARGIN`` in appearance or, at about the
+        same appearance, by ``FALLBACK_MATCH_MARGIN`` matches, so near-ties (common, and the
+        third key changes every frame) do not make the robot turn back and forth."""
+        cands = [e for e in self.db if e.id not in self._given_up]
+        if not cands:
+            self._fallback = None
+            return None
+        best = max(cands, key=lambda e: (e.appearance, e.e_max, self.appearance.get(e.id, -1.0)))
+        cur = next((e for e in cands if e.id == self._fallback), None)
+        if cur is not None and best.id != cur.id:
+            d_app = best.appearance - cur.appearance
+            switch = d_app > FALLBACK_APPEARANCE_MARGIN or (
+                d_app >= -FALLBACK_APPEARANCE_MARGIN and best.e_max >= cur.e_max + FALLBACK_MATCH_MARGIN)
+            if not switch:
+                best = cur
+        self._fallback = best.id
+        return best
 
     def _promising(self) -> list[ObjectEntry]:
         """Entries whose appearance reaches tau_a from too few viewpoints to confirm them, most
@@ -492,12 +521,9 @@ class SplatSearchAgent:
                 matched = self.goal_candidates()
             if not matched:
                 # everything is explored and nothing passed tau_m: the goal-class object with the
-                # most matches (then the most similar appearance) is still a better bet than
-                # stopping where the robot is
-                cands = [e for e in self.db if e.id not in self._given_up]
-                if cands:
-                    best = max(cands, key=lambda e: (e.appearance, e.e_max, self.appearance.get(e.id, -1.0)))
-                    self._fallback = best.id
+                # most evidence is still a better bet than stopping where the robot is
+                best = self._choose_fallback()
+                if best is not None:
                     matched = [best]
         verifying = False
         if not matched:

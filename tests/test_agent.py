@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from splatsearch import sim
-from splatsearch.agent import VARIANTS, AgentConfig, SplatSearchAgent
+from splatsearch.agent import (
+    FALLBACK_MATCH_MARGIN,
+    VARIANTS,
+    AgentConfig,
+    SplatSearchAgent,
+)
 from splatsearch.episode import run_episode
 from splatsearch.evaluation import evaluate, house_seeds, markdown_table, summarise
 
@@ -295,3 +300,38 @@ def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
         agent.frame_index += 1
     assert statuses[:4] == ["verifying"] * 4 and statuses[4] == "not_the_goal"
     assert e in agent._given_up and agent._promising() == []
+
+
+def test_end_of_exploration_fallback_is_chosen_again_with_hysteresis(episode):
+    from splatsearch.nav.fmm import Plan
+
+    ep, env = episode
+    agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
+                             ep.start, config=AgentConfig(appearance=False))
+    c = np.asarray(ep.start, float)
+    db, tau = agent.db, agent.cfg.tau_m
+    a = db.add(ep.goal_class, [c[0] + 3.0, c[1], 0.5], c).entry_id
+    b = db.add(ep.goal_class, [c[0] - 3.0, c[1], 0.5], c).entry_id
+    db.record_match(a, 8.0, 0, tau)  # neither passes tau_m
+    db.record_match(b, 7.0, 0, tau)
+
+    class Planner:
+        def plan(self, *a, **k):
+            return Plan("move_forward", "moving", 3.0)
+
+        def path(self, *a, **k):
+            return np.zeros((0, 2))
+
+    agent.explorer.planner = lambda: Planner()
+    agent._explored = True
+    assert agent.goal_candidates() == []  # the fallback is not taken for a matched goal
+    assert agent._decide(c) == ("move_forward", "to_goal") and agent.target_entry == a
+    db.record_match(b, 8.0 + FALLBACK_MATCH_MARGIN - 1.0, 0, tau)  # a near-tie does not turn the robot
+    agent._decide(c)
+    assert agent.target_entry == a and agent._fallback == a
+    db.record_match(b, 12.0, 0, tau)  # seen better on the way: the other entry takes over
+    agent._decide(c)
+    assert agent.target_entry == b and agent._fallback == b
+    agent._given_up.add(b)  # and when it is given up, the next best is chosen
+    agent._decide(c)
+    assert agent.target_entry == a
