@@ -16,7 +16,11 @@ One :meth:`SplatSearchAgent.act` call per simulator step:
    skipped for objects the colours already decide;
 4. with a goal object the agent follows the FMM path to it and stops within ``stop_margin`` of
    its extent; with an object that looks like the goal from too few viewpoints it walks up to it
-   to confirm it; otherwise it takes the eq 19/20 frontier.
+   to confirm it; otherwise it takes the eq 19/20 frontier;
+5. once no frontier is left and no object passed tau_m, it goes to the goal-class object with
+   the most evidence (appearance, then e_max) and stops there rather than where it stands; that
+   choice is made again every step with some hysteresis, since the way there shows the other
+   objects again (the thesis does not say what happens then).
 
 Variants (the thesis' Table IV ablations): ``splatsearch`` (full), ``no_nvsm`` (match the raw
 observation of each detection instead of rendered views), ``no_inpaint``, ``nearest_frontier``
