@@ -51,7 +51,7 @@ from splatsearch.search.appearance import (
     ColorHistogramAppearance,
     goal_object_mask,
 )
-from splatsearch.search.detection import Detector, SimDetector
+from splatsearch.search.detection import Detector, SimDetector, check_detections
 from splatsearch.search.inpainting import Inpainter, OpenCVInpainter
 from splatsearch.search.local_map import (
     LocalMapConfig,
@@ -90,6 +90,9 @@ LIFT_TOLERANCE = 0.5
 #: is about as similar and has at least ``FALLBACK_MATCH_MARGIN`` more matches (camera-image scale)
 FALLBACK_APPEARANCE_MARGIN = 0.05
 FALLBACK_MATCH_MARGIN = 2.0
+
+#: the smallest goal image side in pixels: SIFT finds almost no features below it
+MIN_GOAL_SIDE = 32
 
 #: the thesis' Table IV rows (the evaluation's default) and ``no_appearance``: the full system
 #: identifying by feature matches alone, as the thesis does
@@ -227,7 +230,9 @@ class SplatSearchAgent:
 
     Args:
         K, width, height: the robot camera.
-        goal_rgb: (H, W, 3) goal image in [0, 1]; goal_class: its object class (a goal category).
+        goal_rgb: (H, W, 3) goal image, float in [0, 1] or uint8; its size need not be the robot
+            camera's, but at least :data:`MIN_GOAL_SIDE` px a side. goal_class: its object class
+            (a goal category).
         start_pose: (x, y, yaw) where the episode starts (centres the grid maps).
         config: :class:`AgentConfig`; detector / matcher / inpainter / encoder / appearance_model:
             plug-ins (offline defaults: simulator masks, SIFT + RANSAC, OpenCV Telea,
@@ -239,6 +244,13 @@ class SplatSearchAgent:
         goal_mask: (H, W) bool, the goal object's pixels in the goal image. Without it the
             detector is run on the goal image (``goal_frame`` is passed to it: the simulator
             detector needs the goal image's frame); without either the appearance cue is off.
+
+    Raises:
+        ValueError: for a goal image that is not RGB, is smaller than ``MIN_GOAL_SIDE`` px a side,
+            holds NaN / Inf or values outside [0, 1]; for a goal mask of another size; and, from
+            :meth:`act`, when a detector's mask does not have the image's size.
+        TypeError: for a goal image of a non-numeric dtype, and when the detector returns
+            anything but a list of :class:`~splatsearch.search.Detection`.
     """
 
     def __init__(self, K, width: int, height: int, goal_rgb: np.ndarray, goal_class: str, start_pose, *,
@@ -249,10 +261,8 @@ class SplatSearchAgent:
         self.cfg = cfg = config or AgentConfig()
         self.K = np.asarray(K, np.float64)
         self.W, self.H = int(width), int(height)
-        self.goal = np.asarray(goal_rgb, np.float32)
+        self.goal = _check_goal_image(goal_rgb)
         self.goal_class = goal_class
-        if self.goal.ndim != 3 or self.goal.shape[2] != 3:
-            raise ValueError(f"goal_rgb must have shape (H, W, 3), got {self.goal.shape}")
         self.detector = detector or SimDetector(goal_classes=(goal_class,))
         self.appearance_model = appearance_model or ColorHistogramAppearance()
         use_appearance = cfg.appearance and cfg.variant != "no_appearance"
@@ -308,9 +318,11 @@ class SplatSearchAgent:
     def _goal_signature(self, goal_mask, goal_frame) -> np.ndarray | None:
         if goal_mask is None:
             try:
-                goal_mask = goal_object_mask(self.detector.detect(self.goal, goal_frame), self.goal_class)
+                dets = self.detector.detect(self.goal, goal_frame)
             except ValueError:
-                goal_mask = None  # e.g. the simulator detector without the goal image's frame
+                dets = []  # e.g. the simulator detector without the goal image's frame
+            dets = check_detections(dets, self.goal.shape[:2], type(self.detector).__name__)
+            goal_mask = goal_object_mask(dets, self.goal_class)
         if goal_mask is None:
             return None
         goal_mask = np.asarray(goal_mask, bool)
@@ -356,8 +368,13 @@ class SplatSearchAgent:
         return StepInfo(action, status, len(fr), len(self.db), best, self.nvsm_runs, t)
 
     # -- SOIM + NVSM + FEM ----------------------------------------------------------------------
+    def _detect(self, rgb: np.ndarray, frame) -> list:
+        """The detector's output for ``rgb``, checked (a list of Detection with masks of the
+        image's size; a plug-in's mistake is reported here rather than deep in the lifting)."""
+        return check_detections(self.detector.detect(rgb, frame), np.shape(rgb)[:2], type(self.detector).__name__)
+
     def _identify(self, rgb, depth, viewmat, pose, frame, use_map: bool = True) -> None:
-        dets = [d for d in self.detector.detect(rgb, frame) if d.label == self.goal_class]
+        dets = [d for d in self._detect(rgb, frame) if d.label == self.goal_class]
         if not dets:
             return
         ids = None
@@ -637,7 +654,7 @@ class SplatSearchAgent:
                 self.observations.add(e.id, rgb, depth, viewmat)
             self._run_nvsm(e.id)
         elif self._last_obs is not None:
-            dets = [d for d in self.detector.detect(self._last_obs[0], self._last_frame) if d.label == self.goal_class]
+            dets = [d for d in self._detect(self._last_obs[0], self._last_frame) if d.label == self.goal_class]
             for d in dets:
                 n = self._match_detection(self._last_obs[0], d.mask)
                 if n > max(e.e_max, 0):
@@ -682,3 +699,27 @@ def _crop_around(rgb: np.ndarray, mask: np.ndarray, margin: float = 0.5, min_siz
     dr = max(int((r1 - r0) * margin), (min_size - (r1 - r0) + 1) // 2)
     dc = max(int((c1 - c0) * margin), (min_size - (c1 - c0) + 1) // 2)
     return rgb[max(0, r0 - dr):min(H, r1 + dr), max(0, c0 - dc):min(W, c1 + dc)]
+
+
+def _check_goal_image(goal_rgb) -> np.ndarray:
+    """The goal image as float32 (H, W, 3) in [0, 1]. uint8 images are scaled by 1/255; anything
+    else that is not an RGB image of at least ``MIN_GOAL_SIDE`` pixels a side with finite values
+    in [0, 1] is rejected, because it would only fail (or silently match nothing) mid-episode."""
+    g = np.asarray(goal_rgb)
+    if g.ndim != 3 or g.shape[2] != 3:
+        raise ValueError(f"goal_rgb must have shape (H, W, 3), got {g.shape}")
+    if min(g.shape[:2]) < MIN_GOAL_SIDE:
+        raise ValueError(f"goal_rgb is {g.shape[1]}x{g.shape[0]} px; it needs at least {MIN_GOAL_SIDE} px a side "
+                         "for feature matching")
+    if g.dtype == np.uint8:
+        return g.astype(np.float32) / 255.0
+    if not np.issubdtype(g.dtype, np.floating):
+        raise TypeError(f"goal_rgb must be float in [0, 1] or uint8, got dtype {g.dtype}")
+    g = g.astype(np.float32)
+    if not np.all(np.isfinite(g)):
+        raise ValueError("goal_rgb contains NaN or Inf")
+    lo, hi = float(g.min()), float(g.max())
+    if lo < -1e-3 or hi > 1.0 + 1e-3:
+        hint = " (a 0-255 image? divide it by 255)" if hi > 1.5 else ""
+        raise ValueError(f"goal_rgb values must be in [0, 1], got [{lo:.3g}, {hi:.3g}]{hint}")
+    return np.clip(g, 0.0, 1.0)

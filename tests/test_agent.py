@@ -14,6 +14,8 @@ from splatsearch.agent import (
 )
 from splatsearch.episode import run_episode
 from splatsearch.evaluation import evaluate, house_seeds, markdown_table, summarise
+from splatsearch.search import Detection
+from splatsearch.sim.episodes import goal_image
 
 
 @pytest.fixture(scope="module")
@@ -51,6 +53,57 @@ def test_agent_rejects_bad_goal_class(episode):
     ep, env = episode
     with pytest.raises(ValueError):
         SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), "unicorn", ep.start)
+
+
+def test_agent_checks_the_goal_image(episode):
+    ep, env = episode
+    gf = goal_image(env, ep)
+
+    def make(goal, **kw):
+        return SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, ep.start, **kw)
+
+    for bad, match in ((gf.rgb[..., 0], "shape"), (np.dstack([gf.rgb, gf.rgb[..., :1]]), "shape"),
+                       (gf.rgb[:20, :20], "at least 32 px"), (gf.rgb * 255.0, "divide it by 255"),
+                       (np.where(gf.rgb > 0.5, np.nan, gf.rgb), "NaN")):
+        with pytest.raises(ValueError, match=match):
+            make(bad)
+    with pytest.raises(TypeError, match="dtype"):
+        make(gf.rgb.astype(np.int32))
+    with pytest.raises(ValueError, match="goal_mask shape"):
+        make(gf.rgb, goal_mask=np.ones((10, 10), bool))
+    # another size than the robot camera is fine, and uint8 is read as 0-255
+    small = (gf.rgb[::2, ::2] * 255 + 0.5).astype(np.uint8)
+    agent = make(small, goal_frame=None)
+    assert agent.goal.shape == (120, 160, 3) and agent.goal.dtype == np.float32
+    np.testing.assert_allclose(agent.goal, small / 255.0, atol=1e-6)
+
+
+class _BrokenDetector:
+    """A plug-in that returns masks at the wrong size, or not Detections at all."""
+
+    def __init__(self, out):
+        self.out = out
+
+    def detect(self, rgb, frame=None):
+        return self.out(rgb)
+
+
+def test_agent_reports_broken_detector_output(episode):
+    ep, env = episode
+    gf = goal_image(env, ep)
+    obs = env.reset(ep.start)
+    half = lambda rgb: [Detection(np.ones((rgb.shape[0] // 2, rgb.shape[1] // 2), bool), ep.goal_class, 0.9)]
+    for out, err, match in ((half, ValueError, r"mask of shape \(120, 160\).*\(240, 320\)"),
+                            (lambda rgb: [(np.ones(rgb.shape[:2], bool), ep.goal_class, 0.9)], TypeError,
+                             "tuple at index 0"),
+                            (lambda rgb: None, TypeError, "must return a list")):
+        agent = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start,
+                                 detector=_BrokenDetector(out), goal_mask=gf.rgb[..., 0] > 2)
+        with pytest.raises(err, match=match):
+            agent.act(obs.frame.rgb, obs.frame.depth, obs.viewmat, obs.pose, obs.frame)
+    # checked on the goal image too, where the agent looks for the goal object's mask
+    with pytest.raises(ValueError, match="_BrokenDetector.detect returned a mask"):
+        SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, detector=_BrokenDetector(half))
 
 
 def test_summary_and_table():
@@ -175,7 +228,6 @@ def test_agent_keeps_a_matched_goal_while_the_way_to_it_is_unmapped(episode):
 
 def test_appearance_decides_which_objects_are_the_goal(episode):
     ep, env = episode
-    from splatsearch.sim.episodes import goal_image
 
     gf = goal_image(env, ep)
     agent = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, goal_frame=gf)
@@ -270,7 +322,6 @@ def test_nvsm_counts_are_judged_against_their_own_threshold(episode, monkeypatch
 def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
     from splatsearch.nav.fmm import Plan
 
-    from splatsearch.sim.episodes import goal_image
 
     ep, env = episode
     gf = goal_image(env, ep)

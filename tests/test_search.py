@@ -280,6 +280,22 @@ def test_sim_detector_filters_and_rejects_bad_input(env):
         Detection(np.ones((4, 4), bool), "chair", 1.5)
 
 
+def test_check_detections_names_the_broken_output():
+    good = Detection(np.ones((H, W), bool), "chair", 0.5)
+    assert search.check_detections((good,), (H, W)) == [good]
+    assert search.check_detections([], (H, W)) == []
+    for out, err, match in ((None, TypeError, "must return a list"), ({"mask": 1}, TypeError, "must return a list"),
+                            ([good, "chair"], TypeError, "str at index 1"),
+                            ([Detection(np.ones((H // 2, W), bool), "chair", 0.5)], ValueError, "mask of shape")):
+        with pytest.raises(err, match=match):
+            search.check_detections(out, (H, W), "MyYOLO")
+    # ObjectSearch checks its detector too
+    bad = type("Bad", (), {"detect": lambda self, rgb, frame=None: [Detection(np.ones((8, 8), bool), "chair", 1.0)]})()
+    os_ = search.ObjectSearch(np.array([[100.0, 0, W / 2], [0, 100.0, H / 2], [0, 0, 1]]), W, H, bad)
+    with pytest.raises(ValueError, match="Bad.detect returned a mask"):
+        os_.observe(np.zeros((H, W, 3), np.float32), np.ones((H, W), np.float32), np.eye(4))
+
+
 def test_model_adapters_need_local_files(tmp_path):
     missing = tmp_path / "nope.pt"
     with pytest.raises(FileNotFoundError, match="never downloaded"):

@@ -26,6 +26,7 @@ from .detection import (
     Detector,
     SimDetector,
     UltralyticsDetector,
+    check_detections,
 )
 from .inpainting import (
     DiffusionInpainter,
@@ -87,6 +88,7 @@ __all__ = [
     "UltralyticsDetector",
     "backproject_mask",
     "best_view",
+    "check_detections",
     "crop_box_for",
     "erode_mask",
     "goal_object_mask",

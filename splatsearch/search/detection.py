@@ -68,6 +68,31 @@ class Detector(Protocol):
     def detect(self, rgb: np.ndarray, frame: Any = None) -> list[Detection]: ...
 
 
+def check_detections(dets: Any, shape: tuple[int, int], source: str = "detector") -> list[Detection]:
+    """Validate what a :class:`Detector` returned for an (H, W) image: a list (or other iterable)
+    of :class:`Detection` whose masks are (H, W). Plug-in models often return masks at their own
+    input resolution; that would otherwise surface later as an indexing error far from its cause.
+
+    Returns the detections as a list. Raises TypeError (anything but an iterable of Detection) or
+    ValueError (a mask of another size), naming ``source``.
+    """
+    if dets is None or isinstance(dets, (str, bytes, dict, np.ndarray)):
+        raise TypeError(f"{source}.detect must return a list of Detection, got {type(dets).__name__}")
+    try:
+        out = list(dets)
+    except TypeError:
+        raise TypeError(f"{source}.detect must return a list of Detection, got {type(dets).__name__}") from None
+    shape = tuple(int(s) for s in shape)
+    for i, d in enumerate(out):
+        if not isinstance(d, Detection):
+            raise TypeError(f"{source}.detect returned {type(d).__name__} at index {i}; expected a Detection "
+                             "(mask (H, W) bool, label, score)")
+        if d.mask.shape != shape:
+            raise ValueError(f"{source}.detect returned a mask of shape {d.mask.shape} at index {i} for an image "
+                             f"of {shape}; masks must have the image's size (resize them to (H, W) first)")
+    return out
+
+
 def _check_rgb(rgb) -> np.ndarray:
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] == 0 or rgb.shape[1] == 0:

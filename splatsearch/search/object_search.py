@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .detection import Detection, Detector
+from .detection import Detection, Detector, check_detections
 from .inpainting import Inpainter, OpenCVInpainter, holes_from_alpha, split_holes
 from .matching import (
     DEFAULT_TAU_M,
@@ -181,7 +181,8 @@ class ObjectSearch:
         if rgb.shape != (self.height, self.width, 3) or depth.shape != (self.height, self.width):
             raise ValueError(f"expected rgb ({self.height}, {self.width}, 3) and depth ({self.height}, {self.width}); "
                              f"got {rgb.shape}, {depth.shape}")
-        dets = [d for d in self.detector.detect(rgb, frame) if self.labels is None or d.label in self.labels]
+        dets = check_detections(self.detector.detect(rgb, frame), rgb.shape[:2], type(self.detector).__name__)
+        dets = [d for d in dets if self.labels is None or d.label in self.labels]
         if not dets:
             return []
         top_ids = means = active = None
