@@ -322,7 +322,6 @@ def test_nvsm_counts_are_judged_against_their_own_threshold(episode, monkeypatch
 def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
     from splatsearch.nav.fmm import Plan
 
-
     ep, env = episode
     gf = goal_image(env, ep)
     agent = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, goal_frame=gf,

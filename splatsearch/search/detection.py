@@ -16,6 +16,7 @@ Two implementations:
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -76,12 +77,9 @@ def check_detections(dets: Any, shape: tuple[int, int], source: str = "detector"
     Returns the detections as a list. Raises TypeError (anything but an iterable of Detection) or
     ValueError (a mask of another size), naming ``source``.
     """
-    if dets is None or isinstance(dets, (str, bytes, dict, np.ndarray)):
+    if not isinstance(dets, Iterable) or isinstance(dets, (str, bytes, dict, np.ndarray)):
         raise TypeError(f"{source}.detect must return a list of Detection, got {type(dets).__name__}")
-    try:
-        out = list(dets)
-    except TypeError:
-        raise TypeError(f"{source}.detect must return a list of Detection, got {type(dets).__name__}") from None
+    out = list(dets)
     shape = tuple(int(s) for s in shape)
     for i, d in enumerate(out):
         if not isinstance(d, Detection):
