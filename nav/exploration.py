@@ -9,7 +9,9 @@ eq 19: ``f* = argmax_f  alpha * d_t(f) + beta * E_t(f) + delta * V_t(f)`` with
     min-max normalised over the frontiers by default (embedding cosines sit in a narrow band).
 
 :class:`ExplorationPlanner` ties the occupancy grid, frontiers, value map and FMM planner together:
-``observe`` once per frame, then ``act`` for the next discrete action.
+``observe`` once per frame (with the action the robot took to get there), then ``act`` once for
+the next discrete action: toward the best frontier, or toward a goal region the caller names (the
+FMM planner over the current map is built once per ``act``).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .encoders import ImageEncoder, cosine
-from .fmm import FMMPlanner
+from .fmm import FMMPlanner, Plan
 from .frontiers import MIN_POCKET_AREA, Frontier, attach_distances, extract_frontiers
 from .grid import GridSpec, wrap_angle
 from .occupancy import OCCUPIED, UNKNOWN, OccupancyGrid
@@ -146,13 +148,18 @@ class ExplorationConfig:
 @dataclass
 class Decision:
     """What :meth:`ExplorationPlanner.act` chose: ``action`` (one of the discrete actions),
-    ``status`` ("look_around", "exploring", "looking", "explored", "blocked"), the target frontier, and all
-    reachable frontiers scored this step (their ``info`` holds d, E, V and utility)."""
+    ``status`` ("look_around", "exploring", "looking", "explored", "blocked", or "goal" when
+    ``action`` heads for the caller's goal region), the target frontier, and all reachable
+    frontiers scored this step (their ``info`` holds d, E, V and utility). With a goal region:
+    ``goal`` is the FMM :class:`~splatsearch.nav.fmm.Plan` toward it and ``goal_path`` its path
+    (P, 2) world metres (empty when there is none)."""
 
     action: str
     status: str
     target: Frontier | None = None
     frontiers: list[Frontier] = field(default_factory=list)
+    goal: Plan | None = None
+    goal_path: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 class ExplorationPlanner:
@@ -201,13 +208,18 @@ class ExplorationPlanner:
             raise ValueError("set_goal_image needs an encoder (e.g. ColorTextureEncoder())")
         self.goal_embedding = np.asarray(self.encoder.embed(rgb), np.float32)
 
-    def observe(self, depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, pose, rgb: np.ndarray | None = None):
+    def observe(self, depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, pose, rgb: np.ndarray | None = None,
+                action: str | None = None):
         """Fuse one frame: depth (H, W) m, viewmat (4, 4) world-to-camera, K (3, 3), robot pose
         (x, y, yaw), and optionally rgb (H, W, 3) for the value map (used once a goal image is
-        set). Returns the frame's :class:`FovFootprint`."""
+        set). ``action``: the action the robot took to arrive here (None: the one :meth:`act`
+        returned last); a ``move_forward`` that went nowhere marks the obstacle the camera missed.
+        Returns the frame's :class:`FovFootprint`."""
         pose = np.asarray(pose, np.float64).reshape(-1)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"pose must be finite (x, y, yaw), got {pose!r}")
+        if action is not None:
+            self._last_action = str(action)
         occ = self.occupancy
         if (self._last_action == "move_forward" and self._last_pose is not None
                 and np.hypot(*(pose[:2] - self._last_pose[:2])) < 0.2 * self.forward_step):
@@ -223,12 +235,6 @@ class ExplorationPlanner:
     def observe_obs(self, obs, K: np.ndarray):
         """:meth:`observe` for a simulator ``Observation`` (frame.depth, frame.rgb, viewmat, pose)."""
         return self.observe(obs.frame.depth, obs.viewmat, K, obs.pose, obs.frame.rgb)
-
-    def note_action(self, action: str) -> None:
-        """Record the action the robot actually takes when a caller overrides :meth:`act` (e.g. it
-        follows its own path to a goal), so that :meth:`observe` can still tell that a
-        ``move_forward`` went nowhere and mark the obstacle the camera missed."""
-        self._last_action = str(action)
 
     def mark_blocked_ahead(self, pose) -> None:
         """Put an obstacle cell just beyond the robot's rim, straight ahead of ``pose``.
@@ -297,11 +303,33 @@ class ExplorationPlanner:
         order = np.argsort(-u, kind="stable")
         return [fs[i] for i in order]
 
-    def act(self, pose, objects: list[ObjectScore] = ()) -> Decision:
-        """Next discrete action from robot ``pose`` (x, y, yaw); ``objects`` feed eq 20."""
+    def act(self, pose, objects: list[ObjectScore] = (), *, goal_xy=None, goal_radius: float = 0.0,
+            explore_if_unreachable: bool = False) -> Decision:
+        """Next discrete action from robot ``pose`` (x, y, yaw); ``objects`` feed eq 20.
+
+        Without ``goal_xy``: toward the best frontier (eq 19). With ``goal_xy`` (2,) metres: the
+        FMM plan toward the free cells within ``goal_radius`` m of it (``Decision.goal``, status
+        "goal"); when no path reaches it and ``explore_if_unreachable``, the frontier decision of
+        this step instead (still carrying ``goal``), since the way may not be mapped yet.
+        """
         pose = np.asarray(pose, np.float64).reshape(-1)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"pose must be finite (x, y, yaw), got {pose!r}")
+        planner = self.planner()
+        if goal_xy is None:
+            return self._explore(pose, objects, planner)
+        plan = planner.plan(pose, goal_xy, goal_radius)
+        try:
+            path = planner.path(pose[:2], goal_xy, goal_radius)
+        except Exception:  # noqa: BLE001 - the path is for display only
+            path = np.zeros((0, 2))
+        if plan.status == "unreachable" and explore_if_unreachable:
+            d = self._explore(pose, objects, planner)
+            d.goal, d.goal_path = plan, path
+            return d
+        return self._done(Decision(plan.action, "goal", goal=plan, goal_path=path))
+
+    def _explore(self, pose: np.ndarray, objects, planner: FMMPlanner) -> Decision:
         if self._turns_left > 0:
             self._turns_left -= 1
             return self._done(Decision("turn_left", "look_around"))
@@ -316,7 +344,6 @@ class ExplorationPlanner:
         if self._still_steps > cfg.stuck_steps + cfg.max_look_turns and self._target is not None:
             self._ban(self._target)
             self._still_steps = 0
-        planner = self.planner()
         fs = self.frontiers(pose, objects, planner)
         for _ in range(8):  # a few re-selections after blacklisting, then give up for this step
             fs = [f for f in fs if not self._blacklisted(f.waypoint_xy)]

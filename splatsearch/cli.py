@@ -175,7 +175,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                              f"{r['steps']} steps {r['wall_time']:.0f} s")
 
         kw = {} if variants is None else {"variants": variants}
-        overrides = {"appearance": False} if args.no_appearance else None
+        overrides = {"colour_cue": False} if args.no_colour_cue else None
         _, summary = evaluate(args.split, args.episodes, args.seed, workers=args.workers, out=args.out,
                               max_steps=args.max_steps, progress=progress, resume=args.resume,
                               identical_furniture=args.identical_furniture,
@@ -288,16 +288,16 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0, help="evaluation seed (selects the houses)")
     e.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     e.add_argument("--variants", default=None,
-                   help=f"comma-separated subset of {','.join(VARIANTS)} (default: the first five)")
+                   help=f"comma-separated subset of {','.join(VARIANTS)} (default: all five)")
     e.add_argument("--max-steps", type=int, default=None)
     e.add_argument("--resume", action="store_true",
                    help="keep the finished episodes in OUT/results.json and run only the missing ones")
     e.add_argument("--identical-furniture", action="store_true",
                    help="one model per furniture class in every house: same-class instances differ only in "
                         "their surroundings")
-    e.add_argument("--no-appearance", action="store_true",
+    e.add_argument("--no-colour-cue", "--no-appearance", dest="no_colour_cue", action="store_true",
                    help="every variant identifies by feature matches alone (as the thesis), without the colour "
-                        "cue, which cannot tell identical furniture apart")
+                        "cue, which cannot tell identical furniture apart (default: off)")
     e.add_argument("--out", default="runs/eval")
     e.set_defaults(func=_cmd_eval)
 

@@ -14,7 +14,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
-from splatsearch.agent import EVAL_VARIANTS, VARIANTS, AgentConfig
+from splatsearch.agent import VARIANTS, AgentConfig
 from splatsearch.io import atomic_write_bytes
 
 #: evaluation houses start here, away from the seeds 0..99 used while developing
@@ -123,7 +123,7 @@ def markdown_table(summary: dict[str, dict], title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_VARIANTS, workers: int = 1,
+def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIANTS, workers: int = 1,
              out: str | None = None, max_steps: int | None = None, progress=None,
              resume: bool = False, identical_furniture: bool = False,
              agent_overrides: dict | None = None) -> tuple[list[dict], dict]:
@@ -135,7 +135,7 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=EVAL_
     run's episodes) and runs only the missing ones. ``identical_furniture`` builds the houses with
     one model per furniture class, so that only their surroundings tell same-class instances
     apart (see :func:`splatsearch.sim.make_house`). ``agent_overrides``: :class:`AgentConfig`
-    fields set for every variant (e.g. ``{"appearance": False}``: identify by feature matches
+    fields set for every variant (e.g. ``{"colour_cue": False}``: identify by feature matches
     alone, as the thesis does, since colours cannot tell identical furniture apart); a resume
     keeps only results run with the same overrides.
     """

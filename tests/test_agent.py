@@ -11,6 +11,8 @@ from splatsearch.agent import (
     VARIANTS,
     AgentConfig,
     SplatSearchAgent,
+    crop_around,
+    resolve_variant,
 )
 from splatsearch.episode import run_episode
 from splatsearch.evaluation import evaluate, house_seeds, markdown_table, summarise
@@ -30,9 +32,22 @@ def test_config_validation():
         AgentConfig(variant="oracle")
     with pytest.raises(ValueError):
         AgentConfig(map_every=0)
-    with pytest.raises(ValueError, match="nvsm_map"):
-        AgentConfig(nvsm_map="house")
-    assert "splatsearch" in VARIANTS and "gaussnav" in VARIANTS
+    assert VARIANTS == ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav")
+
+
+def test_variants_resolve_to_explicit_switches():
+    full = resolve_variant(AgentConfig())
+    assert full.frontier_terms and full.nvsm_during_search and full.match_observations and full.inpaint
+    assert full.colour_cue and not full.identify_after_exploring and not full.observation_match_is_nvsm
+    assert not resolve_variant(AgentConfig(match_observations=False)).match_observations
+    assert not resolve_variant(AgentConfig(colour_cue=False)).colour_cue
+    no_nvsm = resolve_variant(AgentConfig(variant="no_nvsm", match_observations=False))
+    assert no_nvsm.match_observations and no_nvsm.observation_match_is_nvsm and not no_nvsm.nvsm_during_search
+    assert not resolve_variant(AgentConfig(variant="no_inpaint")).inpaint
+    nf = resolve_variant(AgentConfig(variant="nearest_frontier"))
+    assert not nf.frontier_terms and nf.nvsm_during_search and not nf.match_observations
+    gn = resolve_variant(AgentConfig(variant="gaussnav"))
+    assert gn.identify_after_exploring and not gn.nvsm_during_search and not gn.frontier_terms
 
 
 def test_short_episode_runs_and_is_judged(episode):
@@ -144,9 +159,9 @@ def test_evaluate_writes_results(tmp_path):
     assert saved["identical_furniture"] and "identical furniture" in (tmp_path / "summary.md").read_text()
     # agent overrides reach every variant, and a resume with other overrides reruns
     feat, _ = evaluate("val", 1, seed=0, variants=("nearest_frontier",), out=str(tmp_path), max_steps=4,
-                       resume=True, identical_furniture=True, agent_overrides={"appearance": False})
-    assert len(feat) == 1 and feat[0]["agent_overrides"] == {"appearance": False}
-    assert "appearance=False" in (tmp_path / "summary.md").read_text()
+                       resume=True, identical_furniture=True, agent_overrides={"colour_cue": False})
+    assert len(feat) == 1 and feat[0]["agent_overrides"] == {"colour_cue": False}
+    assert "colour_cue=False" in (tmp_path / "summary.md").read_text()
     for bad in ({"variant": "gaussnav"}, {"no_such_field": 1}):
         with pytest.raises(ValueError, match="agent_overrides"):
             evaluate("val", 1, agent_overrides=bad)
@@ -154,35 +169,40 @@ def test_evaluate_writes_results(tmp_path):
 
 @pytest.mark.slow
 def test_longer_episode_end_to_end(episode):
+    """A whole val episode in house 3: the agent must find the goal and stop next to it (the
+    simulator's judge, not the agent, decides success), having seen and verified objects."""
     ep, env = episode
-    r = run_episode(ep, AgentConfig(), env=env, max_steps=150)
-    assert r.steps <= 150 and r.n_objects >= 0 and np.isfinite(r.path_length)
+    statuses = []
+    r = run_episode(ep, AgentConfig(), env=env, max_steps=300, on_step=lambda a, o, i: statuses.append(i.status))
+    assert r.success and r.status == "goal_reached" and r.final_distance <= ep.success_distance
+    assert r.steps < 300 and r.n_objects >= 1 and 0.0 < r.spl <= 1.0
+    assert statuses[0] == "look_around" and "to_goal" in statuses
 
 
 def test_observation_crops_stay_matchable_for_sliver_masks():
-    from splatsearch.agent import _crop_around
     from splatsearch.search import SIFTMatcher
 
     rgb = np.random.default_rng(0).uniform(0, 1, (240, 320, 3)).astype(np.float32)
     mask = np.zeros((240, 320), bool)
     mask[10:114, 0:4] = True  # a 4-px sliver at the image border
-    crop = _crop_around(rgb, mask)
+    crop = crop_around(rgb, mask)
     assert crop.shape[0] >= 104 and crop.shape[1] >= 16
     SIFTMatcher().count(rgb, crop)  # no "image too small" error
     mask[:] = False
     mask[100:140, 100:180] = True
-    assert _crop_around(rgb, mask).shape == (80, 160, 3)  # grown by half the box each side
+    assert crop_around(rgb, mask).shape == (80, 160, 3)  # grown by half the box each side
 
 
 def test_agent_gives_up_a_goal_it_cannot_get_closer_to(episode):
     ep, env = episode
     agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
                              ep.start, config=AgentConfig(goal_patience=3))
-    assert not agent._goal_stalled(0, 5.0)  # first distance: progress
-    assert not agent._goal_stalled(0, 4.0)
-    stalled = [agent._goal_stalled(0, 3.95) for _ in range(4)]  # less than 0.1 m closer each time
+    policy = agent.policy
+    assert not policy.goal_stalled(0, 5.0)  # first distance: progress
+    assert not policy.goal_stalled(0, 4.0)
+    stalled = [policy.goal_stalled(0, 3.95) for _ in range(4)]  # less than 0.1 m closer each time
     assert stalled == [False, False, False, True]
-    assert not agent._goal_stalled(1, 9.0)  # another goal starts afresh
+    assert not policy.goal_stalled(1, 9.0)  # another goal starts afresh
 
 
 def test_compile_cache_is_configurable(tmp_path, monkeypatch):
@@ -221,9 +241,10 @@ def test_agent_keeps_a_matched_goal_while_the_way_to_it_is_unmapped(episode):
 
     agent.explorer.planner = lambda: Unmapped()
     pose = np.asarray(ep.start, float)
-    statuses = [agent._decide(pose)[1] for _ in range(10)]
-    assert res.entry_id not in agent._given_up  # ten unreachable steps do not count as stalling
+    statuses = [agent.policy.decide(pose, 1)[1] for _ in range(10)]
+    assert res.entry_id not in agent.policy.given_up  # ten unreachable steps do not count as stalling
     assert "stuck_goal" not in statuses
+    assert statuses == ["look_around"] * 10  # it explores toward the goal meanwhile (first a look around)
 
 
 def test_appearance_decides_which_objects_are_the_goal(episode):
@@ -231,31 +252,32 @@ def test_appearance_decides_which_objects_are_the_goal(episode):
 
     gf = goal_image(env, ep)
     agent = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, goal_frame=gf)
-    assert agent._goal_sig is not None  # the detector found the goal object in the goal image
+    assert agent.perception.goal_signature is not None  # the detector found the goal object in the goal image
+    assert agent.verifier.colour_cue
     db, c = agent.db, np.asarray(ep.start, float)
     look = db.add(ep.goal_class, [c[0] + 2, c[1], 0.5], c).entry_id  # looks like the goal
     other = db.add(ep.goal_class, [c[0] - 2, c[1], 0.5], c).entry_id  # another instance's colours
     for _ in range(2):
-        db.record_appearance(look, 0.6, 1.0)
-        db.record_appearance(other, 0.05, 1.0)
+        db.record_colour(look, 0.6, 1.0)
+        db.record_colour(other, 0.05, 1.0)
     db.record_match(other, 40.0, 0, agent.cfg.tau_m)  # a feature-match false positive
     assert agent.is_goal(db[look]) and not agent.is_goal(db[other])  # colours veto the match
     assert [e.id for e in agent.goal_candidates()] == [look]
     # matching could change neither decision, so neither object is matched or rendered any more
-    assert not agent._matching_can_decide(db[look]) and not agent._matching_can_decide(db[other])
+    assert not agent.verifier.can_decide(db[look]) and not agent.verifier.can_decide(db[other])
     one = db.add(ep.goal_class, [c[0], c[1] + 3, 0.5], c).entry_id
-    db.record_appearance(one, 0.9, 1.0)  # one view is not enough to confirm ...
-    assert not agent.is_goal(db[one]) and agent._matching_can_decide(db[one])
+    db.record_colour(one, 0.9, 1.0)  # one view is not enough to confirm ...
+    assert not agent.is_goal(db[one]) and agent.verifier.can_decide(db[one])
     db.record_match(one, 40.0, 0, agent.cfg.tau_m)  # ... but it does not veto a feature match
     assert agent.is_goal(db[one])
     # gaussnav decides only after exploring
     gn = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, ep.start, goal_frame=gf,
                           config=AgentConfig(variant="gaussnav"))
     e = gn.db.add(ep.goal_class, [c[0] + 2, c[1], 0.5], c).entry_id
-    gn.db.record_appearance(e, 0.6, 1.0)
-    gn.db.record_appearance(e, 0.6, 1.0)
+    gn.db.record_colour(e, 0.6, 1.0)
+    gn.db.record_colour(e, 0.6, 1.0)
     assert gn.goal_candidates() == []
-    gn._explored = True
+    gn.policy.explored = True
     assert [x.id for x in gn.goal_candidates()] == [e]
 
 
@@ -263,7 +285,7 @@ def test_agent_without_a_goal_mask_falls_back_to_feature_matching(episode):
     ep, env = episode
     agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
                              ep.start)  # no goal frame: the simulator detector cannot run on the goal image
-    assert agent._goal_sig is None
+    assert agent.perception.goal_signature is None and not agent.verifier.colour_cue
     r = agent.db.add(ep.goal_class, [0.0, 0.0, 0.5], np.asarray(ep.start, float))
     assert not agent.is_goal(agent.db[r.entry_id])
     agent.db.record_match(r.entry_id, 40.0, 0, agent.cfg.tau_m)
@@ -272,7 +294,7 @@ def test_agent_without_a_goal_mask_falls_back_to_feature_matching(episode):
         SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
                          ep.start, goal_mask=np.ones((10, 10), bool))
     with pytest.raises(ValueError, match="tau_a"):
-        AgentConfig(tau_a=0.1, appearance_veto=0.2)
+        AgentConfig(tau_a=0.1, colour_veto=0.2)
 
 
 def test_agent_matches_renders_and_camera_images_with_their_own_sift_settings(episode):
@@ -281,42 +303,49 @@ def test_agent_matches_renders_and_camera_images_with_their_own_sift_settings(ep
     ep, env = episode
     goal = np.zeros((240, 320, 3), np.float32)
     agent = SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, ep.start)
-    assert agent.matcher.contrast_threshold == 0.04  # camera images: OpenCV's default
-    assert agent.nvsm_matcher.contrast_threshold == RENDER_CONTRAST_THRESHOLD < 0.04
+    assert agent.verifier.matcher.contrast_threshold == 0.04  # camera images: OpenCV's default
+    assert agent.verifier.nvsm_matcher.contrast_threshold == RENDER_CONTRAST_THRESHOLD < 0.04
     mine = SIFTMatcher(ratio=0.7)  # a user's matcher serves both unless an NVSM one is given
     agent = SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, ep.start, matcher=mine)
-    assert agent.matcher is mine and agent.nvsm_matcher is mine
+    assert agent.verifier.matcher is mine and agent.verifier.nvsm_matcher is mine
     other = SIFTMatcher(ratio=0.8)
     agent = SplatSearchAgent(env.K, env.width, env.height, goal, ep.goal_class, ep.start, matcher=mine,
                              nvsm_matcher=other)
-    assert agent.matcher is mine and agent.nvsm_matcher is other
+    assert agent.verifier.matcher is mine and agent.verifier.nvsm_matcher is other
 
 
 def test_nvsm_counts_are_judged_against_their_own_threshold(episode, monkeypatch):
-    import splatsearch.agent as agent_mod
+    import splatsearch.agent.verification as verification
     from splatsearch.search import NVSMResult
 
     ep, env = episode
     with pytest.raises(ValueError, match="nvsm_tau_m"):
         AgentConfig(nvsm_tau_m=0)
-    cfg = AgentConfig(tau_m=15, nvsm_tau_m=20, nvsm_map="global", clear_views=False)
+    cfg = AgentConfig(tau_m=15, nvsm_tau_m=20, clear_views=False)
     agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
                              ep.start, config=cfg)
     counts = iter([16, 24])
 
     def fake_verify(goal, gmap, centroid, K, width, height, **kw):
-        assert kw["matcher"] is agent.nvsm_matcher and kw["config"].tau_m == 20
+        assert kw["matcher"] is agent.verifier.nvsm_matcher and kw["config"].tau_m == 20
+        assert gmap == "local map" and kw["viewmats"] is None  # clear_views off: the plain hemisphere
         n = next(counts)
         return NVSMResult(0, n, np.array([n]), n >= 20, np.eye(4)[None], np.zeros((1, 4, 4, 3)),
                           np.zeros((1, 4, 4), bool), np.zeros((1, 4, 4, 3)))
 
-    monkeypatch.setattr(agent_mod, "verify_object", fake_verify)
-    r = agent.db.add(ep.goal_class, [0.0, 0.0, 0.5], np.asarray(ep.start, float))
-    agent._run_nvsm(r.entry_id)  # 16 render inliers: above tau_m, below nvsm_tau_m
-    e = agent.db[r.entry_id]
+    monkeypatch.setattr(verification, "verify_object", fake_verify)
+    monkeypatch.setattr(verification, "build_local_map", lambda *a, **k: "local map")
+    db, obs, v = agent.db, agent.perception.observations, agent.verifier
+    r = db.add(ep.goal_class, [0.0, 0.0, 0.5], np.asarray(ep.start, float), bbox=(np.zeros(3), np.ones(3)))
+    assert v.verify(db, r.entry_id, obs) is None and agent.nvsm_runs == 0  # no observation of it yet
+    o = env.reset(ep.start)
+    obs.add(r.entry_id, o.frame.rgb, o.frame.depth, o.viewmat)
+    v.verify(db, r.entry_id, obs)  # 16 render inliers: above tau_m, below nvsm_tau_m
+    e = db[r.entry_id]
     assert e.e_max == pytest.approx(16 * 15 / 20) and not e.matched
-    agent._run_nvsm(r.entry_id)
+    v.verify(db, r.entry_id, obs)
     assert e.e_max == pytest.approx(24 * 15 / 20) and e.matched and agent.nvsm_runs == 2
+    assert agent.last_views.entry_id == r.entry_id and agent.last_views.best == 0
 
 
 def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
@@ -328,8 +357,8 @@ def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
                              config=AgentConfig(verify_steps=4))
     c = np.asarray(ep.start, float)
     e = agent.db.add(ep.goal_class, [c[0] + 3.0, c[1], 0.5], c).entry_id
-    agent.db.record_appearance(e, 0.9, 1.0)  # looks like the goal, but from one viewpoint only
-    assert agent.goal_candidates() == [] and [x.id for x in agent._promising()] == [e]
+    agent.db.record_colour(e, 0.9, 1.0)  # looks like the goal, but from one viewpoint only
+    assert agent.goal_candidates() == [] and [x.id for x in agent.policy.promising()] == [e]
 
     class Planner:
         status = "moving"
@@ -342,14 +371,12 @@ def test_agent_walks_up_to_a_look_alike_and_gives_it_up_unconfirmed(episode):
 
     planner = Planner()
     agent.explorer.planner = lambda: planner
-    assert agent._decide(c) == ("move_forward", "to_candidate")
+    policy = agent.policy
+    assert policy.decide(c, 0) == ("move_forward", "to_candidate")
     planner.status = "reached"  # there: it turns to look but never stops at an unconfirmed object
-    statuses = []
-    for _ in range(6):
-        statuses.append(agent._decide(c)[1])
-        agent.frame_index += 1
+    statuses = [policy.decide(c, step)[1] for step in range(1, 7)]
     assert statuses[:4] == ["verifying"] * 4 and statuses[4] == "not_the_goal"
-    assert e in agent._given_up and agent._promising() == []
+    assert e in policy.given_up and policy.promising() == []
 
 
 def test_end_of_exploration_fallback_is_chosen_again_with_hysteresis(episode):
@@ -357,7 +384,7 @@ def test_end_of_exploration_fallback_is_chosen_again_with_hysteresis(episode):
 
     ep, env = episode
     agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
-                             ep.start, config=AgentConfig(appearance=False))
+                             ep.start, config=AgentConfig(colour_cue=False))
     c = np.asarray(ep.start, float)
     db, tau = agent.db, agent.cfg.tau_m
     a = db.add(ep.goal_class, [c[0] + 3.0, c[1], 0.5], c).entry_id
@@ -373,15 +400,16 @@ def test_end_of_exploration_fallback_is_chosen_again_with_hysteresis(episode):
             return np.zeros((0, 2))
 
     agent.explorer.planner = lambda: Planner()
-    agent._explored = True
+    policy = agent.policy
+    policy.explored = True
     assert agent.goal_candidates() == []  # the fallback is not taken for a matched goal
-    assert agent._decide(c) == ("move_forward", "to_goal") and agent.target_entry == a
+    assert policy.decide(c, 1) == ("move_forward", "to_goal") and agent.target_entry == a
     db.record_match(b, 8.0 + FALLBACK_MATCH_MARGIN - 1.0, 0, tau)  # a near-tie does not turn the robot
-    agent._decide(c)
-    assert agent.target_entry == a and agent._fallback == a
+    policy.decide(c, 2)
+    assert agent.target_entry == a
     db.record_match(b, 12.0, 0, tau)  # seen better on the way: the other entry takes over
-    agent._decide(c)
-    assert agent.target_entry == b and agent._fallback == b
-    agent._given_up.add(b)  # and when it is given up, the next best is chosen
-    agent._decide(c)
+    policy.decide(c, 3)
+    assert agent.target_entry == b
+    policy.given_up.add(b)  # and when it is given up, the next best is chosen
+    policy.decide(c, 4)
     assert agent.target_entry == a

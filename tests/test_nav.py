@@ -846,16 +846,31 @@ def test_exploration_marks_a_forward_step_that_went_nowhere():
     assert ep.occupancy.state[tuple(ahead)] == FREE
     ep.observe(blind, level_viewmat(*pose, 1.31), K, pose)  # the robot did not move
     assert ep.occupancy.state[tuple(ahead)] == OCCUPIED
-    # a caller that moves on its own plan (the agent heading to a matched object) reports its
-    # action, and a bump is marked all the same
+    # a caller that moves on its own plan (the agent heading to a matched object) passes the action
+    # it took to observe, and a bump is marked all the same; a turn marks nothing
     spec, ep, pose = _corridor_planner(ExplorationConfig(initial_turns=0))
     ep.observe(blind, level_viewmat(*pose, 1.31), K, pose)
     ahead = spec.world_to_cell(pose[:2] + [0.17 + 0.05, 0.0])
-    ep.note_action("move_forward")
-    ep.observe(blind, level_viewmat(*pose, 1.31), K, pose)
+    ep.observe(blind, level_viewmat(*pose, 1.31), K, pose, action="turn_left")
+    assert ep.occupancy.state[tuple(ahead)] == FREE
+    ep.observe(blind, level_viewmat(*pose, 1.31), K, pose, action="move_forward")
     assert ep.occupancy.state[tuple(ahead)] == OCCUPIED
     with pytest.raises(TypeError):
         OccupancyGrid((0.0, 0.0))
+
+
+def test_exploration_plans_to_a_goal_region_or_explores_toward_it():
+    spec, ep, pose = _corridor_planner(ExplorationConfig(initial_turns=0))
+    goal = pose[:2] + [3.0, 0.0]  # down the corridor
+    d = ep.act(pose, goal_xy=goal, goal_radius=0.5)
+    assert d.status == "goal" and d.goal.status == "moving" and d.action == "move_forward"
+    assert d.goal.distance == pytest.approx(2.5, abs=0.2) and len(d.goal_path) > 10 and d.target is None
+    walled = pose[:2] + [0.0, 5.0]  # beyond the corridor wall: no path on the map
+    d = ep.act(pose, goal_xy=walled, goal_radius=0.5)
+    assert d.status == "goal" and d.goal.status == "unreachable" and d.action == "stop"
+    d = ep.act(pose, goal_xy=walled, goal_radius=0.5, explore_if_unreachable=True)
+    assert d.goal.status == "unreachable" and d.status == "exploring" and d.target is not None
+    assert d.action == ep.act(pose).action  # the frontier decision of the step
 
 
 def test_exploration_delta_and_beta_redirect():

@@ -9,6 +9,7 @@ import pytest
 from splatsearch import search, sim
 from splatsearch.search import (
     DEFAULT_TAU_M,
+    ColorHistogramAppearance,
     Detection,
     Detector,
     Inpainter,
@@ -289,11 +290,16 @@ def test_check_detections_names_the_broken_output():
                             ([Detection(np.ones((H // 2, W), bool), "chair", 0.5)], ValueError, "mask of shape")):
         with pytest.raises(err, match=match):
             search.check_detections(out, (H, W), "MyYOLO")
-    # ObjectSearch checks its detector too
+    # the agent's perception checks its detector too
+    from splatsearch.agent import AgentConfig, Perception
+    from splatsearch.nav.encoders import ColorTextureEncoder
+
     bad = type("Bad", (), {"detect": lambda self, rgb, frame=None: [Detection(np.ones((8, 8), bool), "chair", 1.0)]})()
-    os_ = search.ObjectSearch(np.array([[100.0, 0, W / 2], [0, 100.0, H / 2], [0, 0, 1]]), W, H, bad)
+    p = Perception(np.array([[100.0, 0, W / 2], [0, 100.0, H / 2], [0, 0, 1]]), W, H, np.zeros((H, W, 3), np.float32),
+                   "chair", AgentConfig(), detector=bad, encoder=ColorTextureEncoder(),
+                   colour_model=ColorHistogramAppearance(), colour_cue=False)
     with pytest.raises(ValueError, match="Bad.detect returned a mask"):
-        os_.observe(np.zeros((H, W, 3), np.float32), np.ones((H, W), np.float32), np.eye(4))
+        list(p.observe(np.zeros((H, W, 3), np.float32), np.ones((H, W), np.float32), np.eye(4)))
 
 
 def test_model_adapters_need_local_files(tmp_path):
@@ -509,36 +515,41 @@ def test_matching_bad_input():
 # the object side of a search step
 # --------------------------------------------------------------------------------------------
 
-def test_object_search_observes_lifts_and_verifies(env, small_map):
-    from splatsearch import rasterization
+def test_perception_lifts_and_the_verifier_verifies(env, small_map):
+    """The agent's object side on four views of one chair: perception merges them into one entry
+    with a new viewpoint per view and keeps the observations; the verifier's NVSM renders the
+    entry's local map and records its count."""
+    from splatsearch.agent import AgentConfig, Perception, Verifier, resolve_variant
+    from splatsearch.nav.encoders import ColorTextureEncoder
 
-    obj, frames, m = small_map
-    osearch = search.ObjectSearch(env.K, W, H, SimDetector(), labels=["chair"], db=ObjectDB(f_O=3),
-                                  nvsm=search.NVSMConfig(n_views=6))
-    use_map = m.map if hasattr(rasterization, "rasterize_top_ids") else None
-    results = []
+    obj, frames, _ = small_map
+    cfg = AgentConfig(n_views=6, f_O=3)
+    goal = frames[1].rgb
+    p = Perception(env.K, W, H, goal, "chair", cfg, detector=SimDetector(goal_classes=("chair",)),
+                   encoder=ColorTextureEncoder(), colour_model=ColorHistogramAppearance(), colour_cue=True,
+                   goal_mask=frames[1].instance == obj.instance_id)
+    assert p.goal_signature is not None
+    views = []
     for f in frames:
-        results += osearch.observe(f.rgb, f.depth, f.viewmat, use_map, frame=f)
-    assert results and all(d.label == "chair" for d, _ in results)
-    mine = [e for e in osearch.db if np.linalg.norm(e.centroid[:2] - obj.center[:2]) < 0.5]
+        p.map_frame(f.rgb, f.depth, f.viewmat)
+        views += list(p.observe(f.rgb, f.depth, f.viewmat, f, use_map=True))
+    assert views and all(v.detection.label == "chair" for v in views)
+    mine = [e for e in p.db if np.linalg.norm(e.centroid[:2] - obj.center[:2]) < 0.5]
     assert len(mine) == 1  # several views of one chair make one entry
     e = mine[0]
     seen = sum(int((f.instance == obj.instance_id).sum() >= 150) for f in frames)
     assert e.n_obs == len(e.viewpoints) == seen >= 3 and e.bbox_min is not None
-    # its third distinct viewpoint queued the NVSM
-    goal = frames[1].rgb
-    scores = osearch.verify_pending(goal, m.map)
-    assert e.id in scores
-    s = scores[e.id]
+    assert e.colour_views == sum(v.entry_id == e.id for v in views) and e.colour_similarity > cfg.tau_a
+    assert len(p.observations[e.id]) >= 3 and p.crop_cosine[e.id] > 0
+    assert e.id in p.db.pop_pending()  # its third distinct viewpoint queued the NVSM
+    v = Verifier(goal, env.K, W, H, cfg, resolve_variant(cfg), matcher=SIFTMatcher(),
+                 nvsm_matcher=SIFTMatcher.for_renders(), inpainter=search.OpenCVInpainter(), colour_cue=True)
+    s = v.verify(p.db, e.id, p.observations)
     assert s.images.shape == (6, H, W, 3) and s.viewmats.shape == (6, 4, 4) and s.counts.shape == (6,)
-    assert osearch.db[e.id].e_max == s.e_max and osearch.db[e.id].n_nvsm == 1
-    assert osearch.verify_pending(goal, m.map) == {}
-    # the cropped variant renders and scores too
-    osearch.nvsm = search.NVSMConfig(n_views=6, crop=True)
-    s2 = osearch.verify(e.id, goal, m.map)
-    assert s2.images.shape == (6, H, W, 3) and osearch.db[e.id].n_nvsm == 2
+    assert p.db[e.id].e_max == pytest.approx(s.e_max * cfg.tau_m / cfg.nvsm_tau_m) and p.db[e.id].n_nvsm == 1
+    assert v.nvsm_runs == 1 and v.last_views.entry_id == e.id
     with pytest.raises(ValueError, match="expected rgb"):
-        osearch.observe(frames[0].rgb[:10], frames[0].depth, frames[0].viewmat)
+        next(p.observe(frames[0].rgb[:10], frames[0].depth, frames[0].viewmat))
 
 
 @pytest.mark.slow
@@ -630,7 +641,7 @@ def test_color_appearance_separates_same_from_other_instance(env, a_id, b_id):
     # the agent's defaults: tau_a confirms, below the veto rules out
     from splatsearch.agent import AgentConfig
 
-    assert same >= AgentConfig().tau_a and other < AgentConfig().appearance_veto, (same, other)
+    assert same >= AgentConfig().tau_a and other < AgentConfig().colour_veto, (same, other)
     assert m.similarity(sig[0], sig[0]) == pytest.approx(1.0, abs=1e-5)
 
 
@@ -654,18 +665,18 @@ def test_appearance_bad_input_and_empty_mask():
     assert goal_object_mask(dets, "chair") is big and goal_object_mask(dets, "sofa") is None
 
 
-def test_objectdb_record_appearance_keeps_a_weighted_mean():
+def test_objectdb_record_colour_keeps_a_weighted_mean():
     db = ObjectDB()
     r = db.add("chair", [1.0, 2.0, 0.4], (0.0, 0.0, 0.0))
-    assert db[r.entry_id].appearance == -1.0 and db[r.entry_id].app_views == 0
-    db.record_appearance(r.entry_id, 0.9, 0.1)  # a small, unreliable view
-    db.record_appearance(r.entry_id, 0.3, 0.9)
+    assert db[r.entry_id].colour_similarity == -1.0 and db[r.entry_id].colour_views == 0
+    db.record_colour(r.entry_id, 0.9, 0.1)  # a small, unreliable view
+    db.record_colour(r.entry_id, 0.3, 0.9)
     e = db[r.entry_id]
-    assert e.app_views == 2 and e.appearance == pytest.approx((0.09 + 0.27) / 1.0)
+    assert e.colour_views == 2 and e.colour_similarity == pytest.approx((0.09 + 0.27) / 1.0)
     with pytest.raises(ValueError, match="similarity"):
-        db.record_appearance(r.entry_id, 1.5)
+        db.record_colour(r.entry_id, 1.5)
     with pytest.raises(ValueError, match="weight"):
-        db.record_appearance(r.entry_id, 0.5, 0.0)
+        db.record_colour(r.entry_id, 0.5, 0.0)
 
 
 def test_encoder_appearance_wraps_an_image_encoder(env):

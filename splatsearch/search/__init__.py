@@ -1,17 +1,19 @@
 """Object search: SOIM, NVSM, image completion and FEM (thesis Sections 4.2.2-4.2.5).
 
-    detector = SimDetector()                                   # or UltralyticsDetector(path)
-    search = ObjectSearch(env.K, 320, 240, detector, labels=[goal_class])
-    search.observe(obs.frame.rgb, obs.frame.depth, obs.viewmat, mapper.map, frame=obs.frame)
-    scores = search.verify_pending(goal_rgb, mapper.map)       # NVSM -> inpaint -> match (eq 18)
-    search.db.matched()                                        # entries with e_max >= tau_m
+    dets = SimDetector().detect(rgb, frame)                    # or UltralyticsDetector(path)
+    ids = map_top_ids(gmap, viewmat, K, W, H)                  # per-pixel top Gaussian
+    lifted = lift_mask_ids(dets[0].mask, ids, gmap.means)      # -> LiftedObject (centroid, box)
+    db = ObjectDB(); db.add_lifted(dets[0].label, lifted, viewmat)        # eq 13
+    score = verify_object(goal_rgb, gmap, lifted.centroid, K, W, H)       # NVSM -> inpaint -> match (eq 18)
+
+The agent (:mod:`splatsearch.agent`) runs these per frame in its ``Perception`` and ``Verifier``.
 
 Modules: ``detection`` (Detector, Detection, SimDetector, UltralyticsDetector), ``objects``
 (mask lifting, ObjectDB of eq 13), ``novel_views`` (hemisphere cameras, map renders),
 ``inpainting`` (Inpainter, OpenCVInpainter, DiffusionInpainter), ``matching`` (Matcher,
 SIFTMatcher, LoFTRMatcher, best_view of eq 18), ``appearance`` (AppearanceModel,
 ColorHistogramAppearance, EncoderAppearance: a detection's colours against the goal object's),
-``object_search`` (verify_object, ObjectSearch).
+``object_search`` (verify_object, NVSMConfig, NVSMResult).
 """
 
 from .appearance import (
@@ -47,7 +49,7 @@ from .matching import (
     ransac_inliers,
 )
 from .novel_views import crop_box_for, hemisphere_viewpoints, render_novel_views
-from .object_search import NVSMConfig, NVSMResult, ObjectSearch, verify_object
+from .object_search import NVSMConfig, NVSMResult, verify_object
 from .objects import (
     AddResult,
     LiftedObject,
@@ -81,7 +83,6 @@ __all__ = [
     "NVSMResult",
     "ObjectDB",
     "ObjectEntry",
-    "ObjectSearch",
     "OpenCVInpainter",
     "SIFTMatcher",
     "SimDetector",

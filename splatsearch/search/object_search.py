@@ -1,9 +1,7 @@
-"""The search loop's object side: detect -> lift -> object DB -> NVSM -> inpaint -> match.
+"""NVSM -> completion -> FEM for one object (thesis eq 14-18): :func:`verify_object`.
 
-:func:`verify_object` runs the NVSM, the completion and the FEM for one object (eq 18).
-:class:`ObjectSearch` wires a detector, the object database and the verification together so an
-agent calls :meth:`ObjectSearch.observe` every frame and :meth:`ObjectSearch.verify_pending`
-when it wants the due NVSM runs done.
+The per-episode wiring (detect -> lift -> object DB, then verification of the due entries) is
+the agent's :class:`~splatsearch.agent.Perception` and :class:`~splatsearch.agent.Verifier`.
 """
 
 from __future__ import annotations
@@ -14,7 +12,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .detection import Detection, Detector, check_detections
 from .inpainting import Inpainter, OpenCVInpainter, holes_from_alpha, split_holes
 from .matching import (
     DEFAULT_TAU_M,
@@ -23,14 +20,6 @@ from .matching import (
     best_view,
 )
 from .novel_views import crop_box_for, hemisphere_viewpoints, render_novel_views
-from .objects import (
-    AddResult,
-    LiftedObject,
-    ObjectDB,
-    lift_mask_depth,
-    lift_mask_ids,
-    map_top_ids,
-)
 
 
 class NVSMResult(NamedTuple):
@@ -127,84 +116,3 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
     images = inpainter.inpaint(rgb, holes) if cfg.inpaint else rgb
     bv = best_view(goal, images, matcher)
     return NVSMResult(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes, rgb)
-
-
-class ObjectSearch:
-    """Detector + lifting + object DB + NVSM verification, for one episode.
-
-    Args:
-        K, width, height: the robot camera.
-        detector: any :class:`Detector`.
-        labels: detection labels to track (e.g. just the goal class); None tracks all.
-        db: the object database (default :class:`ObjectDB` with its defaults).
-        matcher, inpainter, nvsm: verification settings (see :func:`verify_object`; the default
-            matcher is SIFT with the contrast threshold for renders).
-        erode_px: mask erosion before lifting.
-    """
-
-    def __init__(self, K: np.ndarray, width: int, height: int, detector: Detector, *,
-                 labels: Sequence[str] | None = None, db: ObjectDB | None = None, matcher: Matcher | None = None,
-                 inpainter: Inpainter | None = None, nvsm: NVSMConfig | None = None, erode_px: int = 2):
-        self.K = np.asarray(K, np.float32)
-        if self.K.shape != (3, 3):
-            raise ValueError(f"K must be (3, 3), got {self.K.shape}")
-        self.width, self.height = int(width), int(height)
-        self.detector = detector
-        self.labels = None if labels is None else set(labels)
-        self.db = db if db is not None else ObjectDB()
-        self.matcher = matcher or SIFTMatcher.for_renders()
-        self.inpainter = inpainter or OpenCVInpainter()
-        self.nvsm = nvsm or NVSMConfig()
-        self.erode_px = int(erode_px)
-
-    def lift(self, det: Detection, depth: np.ndarray, viewmat: np.ndarray, top_ids: np.ndarray | None = None,
-             means: np.ndarray | None = None, active: np.ndarray | None = None) -> LiftedObject | None:
-        """Lift one detection: through the Gaussian ids when given, else (or if that finds too few
-        Gaussians) from the masked depth."""
-        lifted = None
-        if top_ids is not None and means is not None:
-            lifted = lift_mask_ids(det.mask, top_ids, means, active=active, erode_px=self.erode_px)
-        if lifted is None:
-            lifted = lift_mask_depth(det.mask, depth, viewmat, self.K, erode_px=self.erode_px)
-        return lifted
-
-    def observe(self, rgb: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, gmap: Any = None,
-                frame: Any = None) -> list[tuple[Detection, AddResult]]:
-        """Detect, lift and merge the objects of one frame.
-
-        rgb (H, W, 3) in [0, 1]; depth (H, W) metres; viewmat (4, 4) the camera (the pose the map
-        was updated with); gmap the current :class:`~splatsearch.gaussians.GaussianMap` (None: lift
-        from depth); frame: passed to the detector (the simulator frame for :class:`SimDetector`).
-        Returns (detection, :class:`AddResult`) per merged detection.
-        """
-        rgb, depth = np.asarray(rgb), np.asarray(depth)
-        if rgb.shape != (self.height, self.width, 3) or depth.shape != (self.height, self.width):
-            raise ValueError(f"expected rgb ({self.height}, {self.width}, 3) and depth ({self.height}, {self.width}); "
-                             f"got {rgb.shape}, {depth.shape}")
-        dets = check_detections(self.detector.detect(rgb, frame), rgb.shape[:2], type(self.detector).__name__)
-        dets = [d for d in dets if self.labels is None or d.label in self.labels]
-        if not dets:
-            return []
-        top_ids = means = active = None
-        if gmap is not None and gmap.n_active > 0:
-            top_ids = map_top_ids(gmap, viewmat, self.K, self.width, self.height)
-            means, active = np.asarray(gmap.means), np.asarray(gmap.active)
-        out = []
-        for d in dets:
-            lifted = self.lift(d, depth, viewmat, top_ids, means, active)
-            if lifted is not None:
-                out.append((d, self.db.add_lifted(d.label, lifted, viewmat)))
-        return out
-
-    def verify(self, entry_id: int, goal: np.ndarray, gmap: Any) -> NVSMResult:
-        """Run :func:`verify_object` for one entry now and record the result in the DB."""
-        e = self.db[entry_id]
-        bbox = None if e.bbox_min is None else (e.bbox_min, e.bbox_max)
-        score = verify_object(goal, gmap, e.centroid, self.K, self.width, self.height, matcher=self.matcher,
-                              inpainter=self.inpainter, config=self.nvsm, bbox=bbox)
-        self.db.record_match(entry_id, score.e_max, score.i_star, self.nvsm.tau_m, score.viewmats[score.i_star])
-        return score
-
-    def verify_pending(self, goal: np.ndarray, gmap: Any) -> dict[int, NVSMResult]:
-        """Verify every entry whose NVSM is due (see :meth:`ObjectDB.pop_pending`)."""
-        return {i: self.verify(i, goal, gmap) for i in self.db.pop_pending()}

@@ -188,9 +188,9 @@ class ObjectEntry:
         best_viewmat: (4, 4) world-to-camera of that view, or None.
         matched: ``e_max >= tau_m``.
         n_nvsm: NVSM runs done for it.
-        app_sum, app_weight, app_views: the weighted sum and total weight of its appearance
-            similarities to the goal object, over ``app_views`` detections (see
-            :meth:`ObjectDB.record_appearance` and :attr:`appearance`).
+        colour_sum, colour_weight, colour_views: the weighted sum and total weight of its colour
+            similarities to the goal object, over ``colour_views`` detections (see
+            :meth:`ObjectDB.record_colour` and :attr:`colour_similarity`).
     """
 
     id: int
@@ -206,14 +206,14 @@ class ObjectEntry:
     best_viewmat: np.ndarray | None = None
     matched: bool = False
     n_nvsm: int = 0
-    app_sum: float = 0.0
-    app_weight: float = 0.0
-    app_views: int = 0
+    colour_sum: float = 0.0
+    colour_weight: float = 0.0
+    colour_views: int = 0
 
     @property
-    def appearance(self) -> float:
-        """Weighted mean appearance similarity to the goal object in [0, 1] (-1: none yet)."""
-        return self.app_sum / self.app_weight if self.app_weight > 0 else -1.0
+    def colour_similarity(self) -> float:
+        """Weighted mean colour similarity to the goal object in [0, 1] (-1: none yet)."""
+        return self.colour_sum / self.colour_weight if self.colour_weight > 0 else -1.0
 
     @property
     def extent_radius(self) -> float:
@@ -377,17 +377,17 @@ class ObjectDB:
         e.matched = e.e_max >= tau_m
         return e
 
-    def record_appearance(self, entry_id: int, similarity: float, weight: float = 1.0) -> ObjectEntry:
-        """Add one detection's appearance similarity to the goal object (in [0, 1]) with a weight
+    def record_colour(self, entry_id: int, similarity: float, weight: float = 1.0) -> ObjectEntry:
+        """Add one detection's colour similarity to the goal object (in [0, 1]) with a weight
         > 0 (larger masks are more reliable); the entry keeps the weighted mean."""
         e = self.entries[entry_id]
         if not (np.isfinite(similarity) and 0.0 <= similarity <= 1.0):
             raise ValueError(f"similarity must be in [0, 1], got {similarity}")
         if not (np.isfinite(weight) and weight > 0):
             raise ValueError(f"weight must be > 0, got {weight}")
-        e.app_sum += float(similarity) * float(weight)
-        e.app_weight += float(weight)
-        e.app_views += 1
+        e.colour_sum += float(similarity) * float(weight)
+        e.colour_weight += float(weight)
+        e.colour_views += 1
         return e
 
     # -- queries ------------------------------------------------------------------------------

@@ -1,0 +1,144 @@
+"""The agent's settings and the variant, resolved once into explicit switches.
+
+:class:`AgentConfig` holds every number a user may change; :func:`resolve_variant` turns its
+``variant`` (a row of the thesis' Table IV) into a :class:`Strategy` of booleans when the agent is
+built. Nothing after construction compares the variant string.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from splatsearch.search.local_map import LocalMapConfig
+from splatsearch.search.matching import DEFAULT_TAU_M, RENDER_TAU_M
+
+#: the thesis' Table IV rows: the full system and its four ablations (the evaluation runs all five)
+VARIANTS = ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav")
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """A variant spelled out: what the agent does, as switches read by the three rooms.
+
+    Attributes:
+        frontier_terms: eq 19 uses the object term E (beta) and the value term V (delta);
+            False leaves the distance term alone (``nearest_frontier``, ``gaussnav``).
+        nvsm_during_search: run an object's NVSM as soon as it is due (every ``f_O`` new
+            viewpoints); False for ``no_nvsm`` (never) and ``gaussnav`` (after exploring).
+        identify_after_exploring: take nothing for the goal before the house is explored, then
+            run the NVSM of every object not yet verified (``gaussnav``).
+        match_observations: match the real camera crop around each new detection against the goal
+            image (``no_nvsm``'s only evidence; the full system and ``no_inpaint`` add it to the
+            rendered views when ``AgentConfig.match_observations``).
+        observation_match_is_nvsm: count those crop matches as the entry's NVSM runs (``no_nvsm``).
+        inpaint: complete the holes of rendered views before matching (off for ``no_inpaint``).
+        colour_cue: compare each detection's colours with the goal object's
+            (``AgentConfig.colour_cue``).
+    """
+
+    frontier_terms: bool
+    nvsm_during_search: bool
+    identify_after_exploring: bool
+    match_observations: bool
+    observation_match_is_nvsm: bool
+    inpaint: bool
+    colour_cue: bool
+
+
+@dataclass
+class AgentConfig:
+    """Agent settings (metres, steps, pixels, counts; defaults in the field list).
+
+    variant: one of :data:`VARIANTS`, resolved by :func:`resolve_variant`.
+
+    Mapping: every ``map_every``-th frame is mapped at ``map_scale`` of the camera resolution
+    with ``map_iters`` Adam steps and densify stride ``map_stride`` px. The online map serves
+    lifting and the viewer only; the NVSM renders object-local maps at full resolution
+    (``local_map``: :class:`~splatsearch.search.local_map.LocalMapConfig`).
+
+    Identification: ``tau_m`` (inliers) is eq 18's match threshold on camera-image counts,
+    ``nvsm_tau_m`` the same for rendered views (matched with a lower SIFT contrast threshold); an
+    NVSM count is stored as ``e_max * tau_m / nvsm_tau_m`` so that one e_max and one tau_m serve
+    eq 18 and eq 20. ``f_O``: NVSM period in new viewpoints; ``tau_d`` (m): object merge distance;
+    ``n_views``, ``view_radius`` (m), ``view_elevations_deg``, ``inpaint_tau`` (opacity below
+    which a rendered pixel is a hole): the NVSM hemisphere. ``clear_views``: keep only hemisphere
+    cameras over known free space with a line of sight to the object on the occupancy grid.
+    ``nvsm_max_runs``: NVSM runs per object at most. ``match_observations``: the full system and
+    ``no_inpaint`` also match the real crop around each new detection. ``identify_every_frame``:
+    detect and lift in every frame, not only in mapped ones (the masked depth places detections
+    between mapped frames).
+
+    Colour cue (:mod:`splatsearch.search.appearance`): with ``colour_cue`` each detection's
+    masked colours are compared with the goal object's (the goal object's mask comes from the
+    detector run on the goal image). An object is the goal when its weighted mean colour
+    similarity over at least ``colour_min_views`` viewpoints reaches ``tau_a``, or when it passes
+    tau_m (eq 18) and its colour similarity is not below ``colour_veto``; a detection's weight
+    grows with its mask up to ``colour_full_px`` pixels. Objects the cue already decides get no
+    feature matching (it could not change the decision).
+
+    Planning: ``alpha``, ``beta``, ``delta``: eq 19 weights. ``stop_margin`` (m): stop this close
+    to a goal object's extent. ``goal_patience``: reachable steps without getting 0.1 m closer
+    to a goal object before it is given up. ``verify_steps``: steps spent next to an object whose
+    colours match from too few viewpoints, turning toward it, before giving it up.
+    ``grid_shape``: cells of the 2-D maps (5 cm) around the start. ``seed``: mapper seeds.
+    """
+
+    variant: str = "splatsearch"
+    map_every: int = 3
+    map_scale: float = 0.25
+    map_iters: int = 5
+    map_stride: int = 2
+    tau_m: float = DEFAULT_TAU_M
+    nvsm_tau_m: float = RENDER_TAU_M
+    f_O: int = 3
+    tau_d: float = 1.0
+    n_views: int = 12
+    view_radius: float = 1.5
+    view_elevations_deg: tuple = (20.0, 45.0)
+    inpaint_tau: float = 0.5
+    clear_views: bool = True
+    nvsm_max_runs: int = 3
+    match_observations: bool = True
+    local_map: LocalMapConfig = field(default_factory=LocalMapConfig)
+    alpha: float = 1.0
+    beta: float = 1.0
+    delta: float = 0.5
+    stop_margin: float = 0.6
+    goal_patience: int = 60
+    identify_every_frame: bool = True
+    verify_steps: int = 6
+    colour_cue: bool = True
+    tau_a: float = 0.45
+    colour_min_views: int = 2
+    colour_veto: float = 0.2
+    colour_full_px: int = 3000
+    grid_shape: tuple = (600, 600)
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        if not (self.tau_m > 0 and self.nvsm_tau_m > 0):
+            raise ValueError(f"need tau_m > 0 and nvsm_tau_m > 0, got {self.tau_m}, {self.nvsm_tau_m}")
+        if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
+            raise ValueError("need map_every >= 1, 0 < map_scale <= 1 and n_views >= 1")
+        if not (0 <= self.colour_veto <= self.tau_a <= 1) or self.colour_min_views < 1 \
+                or self.colour_full_px < 1:
+            raise ValueError("need 0 <= colour_veto <= tau_a <= 1, colour_min_views >= 1 and "
+                             "colour_full_px >= 1")
+
+
+def resolve_variant(cfg: AgentConfig) -> Strategy:
+    """The :class:`Strategy` of ``cfg.variant`` (with ``cfg``'s own switches folded in)."""
+    v = cfg.variant
+    if v not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {v!r}")
+    return Strategy(
+        frontier_terms=v not in ("nearest_frontier", "gaussnav"),
+        nvsm_during_search=v not in ("no_nvsm", "gaussnav"),
+        identify_after_exploring=v == "gaussnav",
+        match_observations=v == "no_nvsm" or (cfg.match_observations and v in ("splatsearch", "no_inpaint")),
+        observation_match_is_nvsm=v == "no_nvsm",
+        inpaint=v != "no_inpaint",
+        colour_cue=bool(cfg.colour_cue),
+    )
