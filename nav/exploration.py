@@ -279,8 +279,7 @@ class ExplorationPlanner:
         if not kept and fs and not cfg.unknown_is_free:
             # nothing reachable over seen-free space, yet frontiers remain: a doorway seen at a
             # grazing angle leaves a free strip narrower than the robot. Plan through unknown
-            # cells to get close enough to see it (dev house 16 declared itself explored after
-            # 57 steps with three rooms unvisited)
+            # cells to get close enough to see it, rather than declaring the house explored
             opt = FMMPlanner.from_occupancy(self.occupancy, True, forward_step=self.forward_step,
                                             turn_deg=self.turn_deg)
             kept = attach_distances(fs, opt.distance_from(pose[:2]), self.spec, cfg.reach_tolerance)
@@ -335,8 +334,8 @@ class ExplorationPlanner:
             return self._done(Decision("turn_left", "look_around"))
         cfg = self.config
         # two frontiers whose utilities swap as the robot turns (the value map changes with its
-        # heading) reset the per-target progress count at every switch: dev house 29 turned left
-        # and right on one spot for 600 steps. Count the steps spent on one spot instead.
+        # heading) would reset a per-target progress count at every switch and leave the robot
+        # turning on one spot: count the steps spent on one spot instead
         if self._anchor_xy is None or np.hypot(*(pose[:2] - self._anchor_xy)) > 0.5:
             self._anchor_xy, self._still_steps = pose[:2].copy(), 0
         else:

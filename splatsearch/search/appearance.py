@@ -6,13 +6,9 @@ handful of matches whichever instance it is. The colours of the object itself te
 one class apart from any distance: every instance has its own materials. This module compares the
 goal object's pixels (the detector run on the goal image) with each detection's pixels.
 
-Measured on 10 development episodes (houses 0-6, val-hard, every goal-class instance seen from
->= 150 px): the pixel-weighted mean similarity over a detection's views is >= 0.43 for every
-goal instance and <= 0.17 for every other instance; the best single view of a non-goal instance
-reached 0.73, so one view is not enough. SIFT inliers on the same frames ranked the goal first
-in 4/10 episodes. Over 40 more episodes (houses 10-29) one other instance, a table sharing the
-goal's colours, reached 0.395 over 8 views: the agent's threshold is 0.45, which every goal of
-the first 10 episodes still reaches over its first two viewpoints.
+A single view can mislead (another instance may share the goal's colours from one side), so the
+agent averages the similarity over several viewpoints, weighted by mask size; the measurements
+behind its threshold are in ``docs/results.md``.
 
 A learned embedding plugs in through :class:`AppearanceModel`; :class:`EncoderAppearance` wraps
 any :class:`~splatsearch.nav.encoders.ImageEncoder` (e.g. the OpenCLIP or transformers adapters,

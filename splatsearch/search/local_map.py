@@ -1,9 +1,8 @@
 """Object-local Gaussian maps for the NVSM.
 
 An online map of a whole house, at the resolution and iteration count that a CPU can afford per
-step, renders novel views too soft for SIFT: on our simulator the goal instance's inlier count
-from such renders was 0-5, the same as for other instances. The object's own observations carry
-the detail. So each object keeps a few full-resolution RGB-D observations from distinct
+step, renders novel views too soft for SIFT to tell instances apart; the object's own
+observations carry the detail. So each object keeps a few full-resolution RGB-D observations from distinct
 viewpoints (:class:`ObservationStore`), and when its NVSM is due a small map of the object and its
 surroundings (its extent grown by ``margin``) is built from them at full resolution
 (:func:`build_local_map`). Rendering that map around the hemisphere gives the NVSM views; pixels
@@ -29,19 +28,13 @@ class LocalMapConfig:
     """Settings of the object-local maps.
 
     Attributes:
-        margin: metres of surroundings kept around the object's extent. The goal image shows the
-            object in its surroundings, which carry many of the matches: with 4 robot views of
-            each object (houses 0-1, val-hard goals) the goal instance reached >= 5 inliers in
-            37% of cases with 3 m against 21% with 1 m, other instances in 3% and 6%.
+        margin: metres of surroundings kept around the object's extent (the goal image shows the
+            object in its surroundings, which carry many of the matches).
         max_frames: observations kept per object (the most redundant viewpoint is dropped).
         iters_per_frame: Adam steps when each observation is added; refine_iters: steps over all
-            of them at the end. The Gaussians start with their pixels' colours and depths, so
-            few steps are needed: on 17 stored objects of 5 look-alike dev episodes (houses 3, 6,
-            7), 4 + 8 steps gave the goal objects the same best NVSM counts as 8 + 24 (14/7/48/8
-            against 12/8/43/8; two goals 0 with both) and the other objects 0 (8 + 24: up to 7),
-            in 40% of the build time (1.5-5.6 s against 4.0-13.7 s, two processes on 2 cores;
-            the build is ~90% of an NVSM run). 2 + 0 or 2 + 4 steps lost goal matches (43 -> 22-26,
-            8 -> 0). stride: densify stride in pixels.
+            of them at the end (the Gaussians start with their pixels' colours and depths, so few
+            steps are needed; measurements in ``docs/results.md``). stride: densify stride in
+            pixels.
         capacity: initial Gaussian capacity (grows by doubling).
         min_separation: metres; an observation closer than this to a kept one (camera centres)
             with a heading within 20 degrees replaces it instead of adding a viewpoint.

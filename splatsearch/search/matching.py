@@ -5,45 +5,17 @@ one view; :func:`best_view` takes the argmax over the completed novel views (eq 
 is declared the goal when ``e_max >= tau_m``.
 
 Offline default :class:`SIFTMatcher`: OpenCV SIFT, Lowe's ratio test (0.75), then the RANSAC
-inliers of a fundamental matrix (3 px). Why a fundamental matrix rather than a homography: the
-goal image and a novel view see a 3-D object and its surroundings from different viewpoints, so
-true matches lie on several planes; a homography keeps only the dominant one. Measured on
-simulator ground-truth renders of the NVSM views (4 houses, 14 same-class groups, val and
-val-hard goals, 12 views at r_v = 1.5 m, elevation 35 deg), the best-view count e_max for the
-goal instance had median 15-16 with F versus 11 with H, while other instances of the class had
-median 0 and 90th percentile 12 for both. F's noise floor (RANSAC always fits its 7-8 point
-minimal set once >= 8 matches pass the ratio test) sits well below the threshold.
+inliers of a fundamental matrix (3 px): the goal image and a view see a 3-D object and its
+surroundings from different viewpoints, so true matches lie on several planes, and a homography
+keeps only the dominant one.
 
-Threshold ``tau_m`` (:data:`DEFAULT_TAU_M` = 15): on the same ground-truth renders, e_max >= 15
-for 53-58% of goal-instance cases and 7-8% of other-instance cases (>= 20: 33% and 3-8%;
->= 12: 64-72% and 12-15%). Renders of our Gaussian maps are blurrier, which lowers both sides:
-with maps optimised from five robot views (house 0, three TVs), the goal instance scored 7-21
-and the other TVs 0-8 (one of six goals ranked wrongly). 15 keeps the false-match rate near that
-of 20 on sharp renders while still firing on map renders; retune it with the map quality (and
-for learned matchers, whose counts are on another scale).
-
-Contrast threshold for rendered views (:data:`RENDER_CONTRAST_THRESHOLD` = 0.02): a render of a
-Gaussian map is softer than a camera image, and SIFT's default contrast threshold (0.04) keeps few
-of its features. On 17 objects stored in 5 look-alike dev episodes (identical furniture; object-
-local maps with 4 + 8 Adam steps, 12 inpainted views each), the 6 goal objects' best counts were
-14, 8, 48, 7, 0, 0 at 0.04 and 15, 43, 77, 23, 7, 7 at 0.02, while the 11 other objects went from
-all 0 to at most 11 (0.015: goals up to 117, but others up to 23). Camera images are sharp and
-keep the default: matched whole (uncropped) against the same objects' stored camera frames, other
-instances reached at most 7 inliers at 0.04, but 15-30 at 0.03 in one episode. So the NVSM
-matches with 0.02 and camera images with 0.04.
-
-Threshold for those render counts (:data:`RENDER_TAU_M`, the agent's ``nvsm_tau_m``): 15, the
-same as tau_m. The lower contrast threshold also raises the noise floor: on 34 objects stored in
-10 look-alike dev episodes (houses 3, 5, 6, 7, 8; the agent's cropped, inpainted views), the 23
-other objects reached at most 13 at 0.02 (8 at 0.04) and the 11 goal entries 41, 77, 33, 23, 17,
-16, 13, 8, 8, 7, 7 (at 0.04 only one passed 11). On 50 look-alike val-hard evaluation episodes
-(seed 0, evaluation houses, feature matching only):
-
-- contrast 0.04, threshold 15 (before): SR 0.840, SPL 0.254, median 63.3 s per episode;
-- contrast 0.02, threshold 15: SR 0.780, SPL 0.302, median 43.5 s;
-- contrast 0.02, threshold 20: SR 0.780, SPL 0.264, median 46.6 s.
-
-A higher render threshold did not remove the failed stops and lost SPL, so it stays at 15.
+Thresholds: :data:`DEFAULT_TAU_M` (eq 18's tau_m, on camera-image counts) and
+:data:`RENDER_TAU_M` (on counts from rendered views). Rendered views are matched with SIFT's
+contrast threshold lowered to :data:`RENDER_CONTRAST_THRESHOLD`, because a render of a Gaussian
+map is softer than a camera image and keeps few features at OpenCV's default 0.04; camera images
+keep 0.04, where a lower threshold lets other instances match. The measurements behind these
+values are in ``docs/results.md``; counts of learned matchers are on another scale and need their
+own thresholds.
 
 Real-model adapter :class:`LoFTRMatcher`: kornia's LoFTR with a local checkpoint (the thesis
 uses EfficientLoFTR; any detector-free dense matcher fits the same slot), followed by the same
@@ -59,13 +31,11 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-#: default feature-match threshold tau_m (RANSAC inliers); see SIFTMatcher for the measurements
+#: default feature-match threshold tau_m (RANSAC inliers) for camera images (docs/results.md)
 DEFAULT_TAU_M = 15
-#: SIFT contrast threshold for rendered novel views (camera images keep OpenCV's 0.04); see the
-#: module docstring for the measurement
+#: SIFT contrast threshold for rendered novel views (camera images keep OpenCV's 0.04)
 RENDER_CONTRAST_THRESHOLD = 0.02
-#: match threshold for rendered novel views matched with RENDER_CONTRAST_THRESHOLD; measured
-#: against 20 (see the module docstring), it stays equal to DEFAULT_TAU_M
+#: match threshold (inliers) for rendered novel views matched with RENDER_CONTRAST_THRESHOLD
 RENDER_TAU_M = 15
 MODELS = ("homography", "fundamental")
 

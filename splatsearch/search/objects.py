@@ -237,12 +237,10 @@ class ObjectDB:
     """Object database D_O (eq 13) with merging and the NVSM trigger.
 
     Args:
-        tau_d: merge distance in metres between centroids of the same label. Default 1.0 m: a
-            lifted centroid is the mean of the *visible* surface, 0.1-0.5 m from the object's box
-            centre in our measurements (single views of chairs to TVs and sofas), and moves by
-            up to about half the object's size between opposite sides; separate same-class
-            objects are further apart (over 40 procedural houses, 1.4% of same-class pairs are
-            closer than 1.0 m, all of them chairs, the closest 0.64 m).
+        tau_d: merge distance in metres between centroids of the same label. A lifted centroid
+            is the mean of the *visible* surface, so it moves by up to about half the object's
+            size between opposite sides; separate same-class objects are mostly further apart
+            (``docs/results.md``).
         f_O: run the NVSM when an entry's distinct-viewpoint count is a multiple of f_O.
         pos_cell: viewpoint quantisation of the camera position (x, y) in metres.
         yaw_bin_deg: viewpoint quantisation of the camera heading in degrees.
