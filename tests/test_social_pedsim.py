@@ -34,7 +34,7 @@ def test_two_people_head_on_pass_each_other_without_overlap_or_entering_walls():
     caps, valid = corridor()
     st = pedsim.make_state([[0.0, 0.05], [10.0, -0.05]], [[[10.0, 0.0]], [[0.0, 0.0]]], [1.2, 1.2])
     _, traj, infos = simulate(st, jnp.asarray(caps), jnp.asarray(valid), 160)
-    assert int(np.asarray(infos.ped_contacts).sum()) >= 0 and not np.asarray(infos.robot_contact).any()
+    assert not np.asarray(infos.robot_contact).any() and int(np.asarray(infos.wall_contacts).sum()) == 0
     a, b = traj[:, 0], traj[:, 1]
     assert np.linalg.norm(a[-1] - [10.0, 0.0]) < 0.5 and np.linalg.norm(b[-1] - [0.0, 0.0]) < 0.5
     assert np.linalg.norm(a - b, axis=1).min() >= 0.5 - 1e-3  # hard collisions resolved: never overlap
@@ -42,6 +42,21 @@ def test_two_people_head_on_pass_each_other_without_overlap_or_entering_walls():
     # they swerved to pass: some lateral separation when they met
     meet = np.argmin(np.abs(a[:, 0] - b[:, 0]))
     assert abs(a[meet, 1] - b[meet, 1]) > 0.4
+    # in a 2 m corridor the forces alone let them touch for a few steps as they meet (8 in this
+    # run); the hard-collision pass resolves those, and there are none away from the meeting
+    touching = np.flatnonzero(np.asarray(infos.ped_contacts)[:160])
+    assert 0 < len(touching) <= 12 and np.all(np.abs(touching + 1 - meet) <= 10), (touching, meet)
+
+
+def test_overlapping_people_are_counted_and_pushed_apart():
+    caps, valid = pad_capsules(np.zeros((0, 5), np.float32), 16)
+    st = pedsim.make_state([[0.0, 0.0], [0.2, 0.0], [3.0, 0.0]], [[[5.0, 0.0]], [[-5.0, 0.0]], [[3.0, 2.0]]],
+                           [1.0, 1.0, 1.0])
+    new, info = pedsim.step(st, jnp.asarray(caps), jnp.asarray(valid), FAR_ROBOT, jnp.zeros(2),
+                            jax.random.PRNGKey(0), CFG)
+    assert int(info.ped_contacts) == 1 and int(info.wall_contacts) == 0  # one overlapping pair
+    p = np.asarray(new.pos)
+    assert np.linalg.norm(p[0] - p[1]) >= 2 * float(st.radius[0]) - 1e-3
 
 
 def test_static_group_holds_its_formation_and_robot_contact_is_reported():
