@@ -15,21 +15,23 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from splatsearch.social.controller import follow_step, follower_init
-from splatsearch.social.geometry import robot_to_world
-from splatsearch.social.llu import TextDB
-from splatsearch.social.olivia import OliviaConfig, OliviaNav
-from splatsearch.social.olivia_data import observe
-from splatsearch.social.scenarios import make_scenario
+from splatsearch.social.convoi.controller import follow_step, follower_init
+from splatsearch.social.convoi.geometry import robot_to_world
+from splatsearch.social.olivia.llu import TextDB
+from splatsearch.social.olivia.planner import OliviaConfig, OliviaNav
+from splatsearch.social.olivia.features import observe
+from splatsearch.social.convoi.scenarios import make_scenario
 
 
 def _planner() -> OliviaNav:
     path = os.environ.get("OLIVIA_CHECKPOINT", "runs/olivia/olivia.npz")
     if os.path.exists(path):
-        from splatsearch.social.olivia_train import load_planner
+        from splatsearch.social.olivia.train import load_planner
 
         return load_planner(path)
-    from splatsearch.social import sc_clip, tpn, tsm
+    from splatsearch.social.olivia import sc_clip
+    from splatsearch.social.olivia import tpn
+    from splatsearch.social.olivia import tsm
 
     cfg = OliviaConfig()
     k = jax.random.split(jax.random.PRNGKey(0), 3)

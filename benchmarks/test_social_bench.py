@@ -13,12 +13,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from splatsearch.social import metrics, pedsim
-from splatsearch.social.convoi import CoNVOI
-from splatsearch.social.dwa import DWAConfig, make_inputs, plan, reference_critic
-from splatsearch.social.runner import Carry, control_step, make_world, planner_config
-from splatsearch.social.scenarios import make_scenario
-from splatsearch.social.vlm import RuleBasedVLM
+from splatsearch.social.convoi import metrics
+from splatsearch.social.convoi import pedsim
+from splatsearch.social.convoi.pipeline import CoNVOI
+from splatsearch.social.convoi.dwa import DWAConfig, make_inputs, plan, reference_critic
+from splatsearch.social.convoi.runner import Carry, control_step, make_world, planner_config
+from splatsearch.social.convoi.scenarios import make_scenario
+from splatsearch.social.convoi.vlm import RuleBasedVLM
 
 
 def _rate(benchmark, key="per_s"):

@@ -1,9 +1,13 @@
-"""Social-navigation layer of splatsearch: a JAX DWA with Nav2-style critics, CoNVOI (context
-prompts, multi-modal visual marking, VLM reference paths, extrapolation and re-query), a JAX
-social-force pedestrian simulator with groups and hard collisions, the OLiVia-Nav scenarios and
-PID navigation controller, and trajectory metrics in JAX.
+"""Social navigation, as two systems over one pedestrian world.
 
-    from splatsearch.social import make_scenario, run_episode, CoNVOI, RuleBasedVLM
+``splatsearch.social.convoi``: CoNVOI on a JAX DWA (context prompts, multi-modal visual marking,
+VLM reference paths, extrapolation and re-query; Nav2-style critics), the seeded social-force
+pedestrian simulator and its scenarios, the PID follower, the episode runner and the trajectory
+metrics. ``splatsearch.social.olivia``: OLiVia-Nav (SC-CLIP, TPN, TSM, LLU, the tokenizer, its
+data from the simulator and its training), which runs in the same scenarios and is scored with
+the same metrics.
+
+    from splatsearch.social import make_scenario, run_episode, CoNVOI, RuleBasedVLM, frechet
     scn = make_scenario("hallway", seed=0)
     expert = run_episode(scn, "expert")                      # privileged "teleoperation" reference
     dwa = run_episode(scn, "dwa")
@@ -11,151 +15,115 @@ PID navigation controller, and trajectory metrics in JAX.
     convoi = run_episode(scn, "convoi", convoi=cv)
     frechet(convoi.robot, expert.robot)
 
+The names below are loaded on first use, so ``import splatsearch.social`` (and the CLI that
+registers the social commands) does not import JAX.
+
 Frames: world x, y in metres, z up, yaw counter-clockwise; the robot frame is x forward, y left
 (CoNVOI III-A); cameras use the OpenCV frame. Grids follow :mod:`splatsearch.nav.grid`.
 """
 
-from .context import (
-    CONTEXTS,
-    PROMPT_TEMPLATE,
-    CLIPContextClassifier,
-    ContextClassifier,
-    ContextResult,
-    RuleContextClassifier,
-    SceneObservation,
-    behaviour_prompt,
-)
-from .controller import FollowerConfig, PIDGains, follow_step, pid_update, track
-from .convoi import CoNVOI, CoNVOIConfig
-from .costs import CRITICS, CostInputs, CriticSpec, register_critic
-from .dwa import (
-    CONVOI_PAPER_CRITICS,
-    DEFAULT_CRITICS,
-    DWAConfig,
-    DWAInputs,
-    DWAResult,
-    constant_velocity_forecast,
-    dynamic_window,
-    make_inputs,
-    plan,
-    reference_critic,
-    rollout,
-)
-from .geometry import (
-    DistanceField,
-    distance_field_from_capsules,
-    distance_field_from_occupancy,
-    field_lookup,
-)
-from .metrics import (
-    collision_count,
-    cosine_similarity,
-    fraction_unacceptable,
-    frechet,
-    hausdorff,
-    mean_velocity,
-    min_distance_to_people,
-    mse,
-    normalized_length,
-    path_length,
-    path_unacceptable,
-    psv_duration,
-    reference_path_error,
-    success,
-)
-from .mmvm import (
-    CameraModel,
-    MarkerGrid,
-    Markers,
-    candidate_grid,
-    grid_to_image_homography,
-    mark,
-    render_view,
-)
-from .pedsim import PedState, SocialForceConfig, make_state
-from .runner import PLANNERS, EpisodeResult, run_episode
-from .scenarios import SCENARIOS, THESIS_SCENARIOS, Scenario, make_scenario
-from .vlm import (
-    VLM,
-    MarkerScene,
-    OpenAICompatibleVLM,
-    ReplayVLM,
-    RuleBasedVLM,
-    VLMResult,
-    parse_labels,
-)
+from __future__ import annotations
 
-__all__ = [
-    "CONTEXTS",
-    "CONVOI_PAPER_CRITICS",
-    "CRITICS",
-    "DEFAULT_CRITICS",
-    "PLANNERS",
-    "PROMPT_TEMPLATE",
-    "SCENARIOS",
-    "THESIS_SCENARIOS",
-    "VLM",
-    "CLIPContextClassifier",
-    "CameraModel",
-    "CoNVOI",
-    "CoNVOIConfig",
-    "ContextClassifier",
-    "ContextResult",
-    "CostInputs",
-    "CriticSpec",
-    "DWAConfig",
-    "DWAInputs",
-    "DWAResult",
-    "DistanceField",
-    "EpisodeResult",
-    "FollowerConfig",
-    "MarkerGrid",
-    "MarkerScene",
-    "Markers",
-    "OpenAICompatibleVLM",
-    "PIDGains",
-    "PedState",
-    "ReplayVLM",
-    "RuleBasedVLM",
-    "RuleContextClassifier",
-    "Scenario",
-    "SceneObservation",
-    "SocialForceConfig",
-    "VLMResult",
-    "behaviour_prompt",
-    "candidate_grid",
-    "collision_count",
-    "constant_velocity_forecast",
-    "cosine_similarity",
-    "distance_field_from_capsules",
-    "distance_field_from_occupancy",
-    "dynamic_window",
-    "field_lookup",
-    "follow_step",
-    "fraction_unacceptable",
-    "frechet",
-    "grid_to_image_homography",
-    "hausdorff",
-    "make_inputs",
-    "make_scenario",
-    "make_state",
-    "mark",
-    "mean_velocity",
-    "min_distance_to_people",
-    "mse",
-    "normalized_length",
-    "parse_labels",
-    "path_length",
-    "path_unacceptable",
-    "pid_update",
-    "plan",
-    "psv_duration",
-    "reference_critic",
-    "reference_path_error",
-    "register_critic",
-    "render_view",
-    "rollout",
-    "run_episode",
-    "success",
-    "track",
-]
+import importlib
+
+#: public name -> the submodule that defines it
+_EXPORTS = {
+    # convoi.context
+    "CLIPContextClassifier": "convoi.context",
+    "CONTEXTS": "convoi.context",
+    "ContextClassifier": "convoi.context",
+    "ContextResult": "convoi.context",
+    "PROMPT_TEMPLATE": "convoi.context",
+    "RuleContextClassifier": "convoi.context",
+    "SceneObservation": "convoi.context",
+    "behaviour_prompt": "convoi.context",
+    # convoi.controller
+    "FollowerConfig": "convoi.controller",
+    "PIDGains": "convoi.controller",
+    "follow_step": "convoi.controller",
+    "pid_update": "convoi.controller",
+    "track": "convoi.controller",
+    # convoi.costs
+    "CRITICS": "convoi.costs",
+    "CostInputs": "convoi.costs",
+    "CriticSpec": "convoi.costs",
+    "register_critic": "convoi.costs",
+    # convoi.dwa
+    "DEFAULT_CRITICS": "convoi.dwa",
+    "DWAConfig": "convoi.dwa",
+    "DWAInputs": "convoi.dwa",
+    "DWAResult": "convoi.dwa",
+    "constant_velocity_forecast": "convoi.dwa",
+    "dynamic_window": "convoi.dwa",
+    "make_inputs": "convoi.dwa",
+    "plan": "convoi.dwa",
+    "reference_critic": "convoi.dwa",
+    "rollout": "convoi.dwa",
+    # convoi.geometry
+    "DistanceField": "convoi.geometry",
+    "distance_field_from_capsules": "convoi.geometry",
+    "distance_field_from_occupancy": "convoi.geometry",
+    "field_lookup": "convoi.geometry",
+    # convoi.metrics
+    "collision_count": "convoi.metrics",
+    "cosine_similarity": "convoi.metrics",
+    "fraction_unacceptable": "convoi.metrics",
+    "frechet": "convoi.metrics",
+    "hausdorff": "convoi.metrics",
+    "mean_velocity": "convoi.metrics",
+    "min_distance_to_people": "convoi.metrics",
+    "mse": "convoi.metrics",
+    "normalized_length": "convoi.metrics",
+    "path_length": "convoi.metrics",
+    "path_unacceptable": "convoi.metrics",
+    "psv_duration": "convoi.metrics",
+    "reference_path_error": "convoi.metrics",
+    "success": "convoi.metrics",
+    # convoi.mmvm
+    "CameraModel": "convoi.mmvm",
+    "MarkerGrid": "convoi.mmvm",
+    "Markers": "convoi.mmvm",
+    "candidate_grid": "convoi.mmvm",
+    "grid_to_image_homography": "convoi.mmvm",
+    "mark": "convoi.mmvm",
+    "render_view": "convoi.mmvm",
+    # convoi.pedsim
+    "PedState": "convoi.pedsim",
+    "SocialForceConfig": "convoi.pedsim",
+    "make_state": "convoi.pedsim",
+    # convoi.pipeline
+    "CoNVOI": "convoi.pipeline",
+    "CoNVOIConfig": "convoi.pipeline",
+    # convoi.runner
+    "EpisodeResult": "convoi.runner",
+    "PLANNERS": "convoi.runner",
+    "run_episode": "convoi.runner",
+    # convoi.scenarios
+    "SCENARIOS": "convoi.scenarios",
+    "Scenario": "convoi.scenarios",
+    "THESIS_SCENARIOS": "convoi.scenarios",
+    "make_scenario": "convoi.scenarios",
+    # convoi.vlm
+    "MarkerScene": "convoi.vlm",
+    "OpenAICompatibleVLM": "convoi.vlm",
+    "ReplayVLM": "convoi.vlm",
+    "RuleBasedVLM": "convoi.vlm",
+    "VLM": "convoi.vlm",
+    "VLMResult": "convoi.vlm",
+    "parse_labels": "convoi.vlm",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    mod = _EXPORTS.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

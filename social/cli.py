@@ -14,7 +14,7 @@ import argparse
 import json
 import os
 
-from .scenarios import SCENARIOS
+from .convoi.scenarios import SCENARIOS
 
 
 def _add_run_args(p: argparse.ArgumentParser) -> None:
@@ -64,7 +64,7 @@ def _scenarios(arg: str) -> list[str]:
 
 
 def _make_vlm(args):
-    from .vlm import OpenAICompatibleVLM, ReplayVLM, RuleBasedVLM
+    from .convoi.vlm import OpenAICompatibleVLM, ReplayVLM, RuleBasedVLM
 
     if args.vlm == "replay":
         if not args.vlm_record:
@@ -82,7 +82,7 @@ def _make_vlm(args):
 def _viewer_observer(viewer):
     import numpy as np
 
-    from .viewer import COLOURS
+    from .convoi.viewer import COLOURS
 
     def factory(scn, method, convoi=None):
         viewer.set_walls(scn.capsules)
@@ -114,8 +114,8 @@ def run_command(args: argparse.Namespace) -> int:
     """Handler of ``splatsearch social`` (and ``social run``): returns the exit status."""
     from rich.console import Console
 
-    from . import report
-    from .convoi import CoNVOIConfig
+    from .convoi import report
+    from .convoi.pipeline import CoNVOIConfig
 
     if args.seeds < 1 or args.seed_offset < 0:
         raise ValueError("--seeds must be >= 1 and --seed-offset >= 0")
@@ -133,7 +133,7 @@ def run_command(args: argparse.Namespace) -> int:
     viewer = None
     factory = None
     if args.viewer:
-        from .viewer import SocialViewer
+        from .convoi.viewer import SocialViewer
 
         viewer = SocialViewer(port=args.port)
         console.print(f"viewer at {viewer.url} (local only); Ctrl-C stops")

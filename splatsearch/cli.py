@@ -314,7 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     x.set_defaults(func=_cmd_export)
 
     from splatsearch.social.cli import register as register_social
-    from splatsearch.social.olivia_cli import register_olivia
+    from splatsearch.social.olivia.cli import register_olivia
 
     register_social(sub, extra=[register_olivia])
     return p

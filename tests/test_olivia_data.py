@@ -4,9 +4,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from splatsearch.social import olivia_data as od
-from splatsearch.social.scenarios import make_scenario
-from splatsearch.social.tokenizer import DEFAULT_TOKENIZER as TOK, EOS, PAD, Tokenizer
+from splatsearch.social.convoi.scenarios import make_scenario
+from splatsearch.social.olivia import captions, dataset, features, lidar, render
+from splatsearch.social.olivia.tokenizer import DEFAULT_TOKENIZER as TOK, EOS, PAD, Tokenizer
 
 F32 = jnp.float32
 
@@ -28,108 +28,108 @@ def test_render_shows_people_walls_and_floor(hallway):
     P = 12
     pos, valid = _people(P, [[3.0, 0.0]])
     palette = jnp.zeros(P, jnp.int32)  # everyone in red
-    img = np.asarray(od.render_view(hallway.field(), jnp.asarray([0.0, 0.0, 0.0], F32), pos, valid, palette))
-    assert img.shape == (od.IMG_H, od.IMG_W, 3) and img.dtype == np.float32
+    img = np.asarray(render.render_view(hallway.field(), jnp.asarray([0.0, 0.0, 0.0], F32), pos, valid, palette))
+    assert img.shape == (render.IMG_H, render.IMG_W, 3) and img.dtype == np.float32
     assert 0 <= img.min() and img.max() <= 1
-    red = np.all(np.abs(img - od.COLOUR_RGB[0]) < 0.25, -1)
+    red = np.all(np.abs(img - render.COLOUR_RGB[0]) < 0.25, -1)
     cols = np.flatnonzero(red.any(0))
-    assert len(cols) > 0 and abs(cols.mean() - od.IMG_W / 2) < 4  # the person is straight ahead
+    assert len(cols) > 0 and abs(cols.mean() - render.IMG_W / 2) < 4  # the person is straight ahead
     # the hallway walls (1.3 m either side) fill the image edges at eye level
     grey = lambda p: np.all(np.abs(p - p.mean()) < 0.05) and 0.2 < p.mean() < 0.75  # noqa: E731
-    row = od.IMG_H // 2
+    row = render.IMG_H // 2
     assert grey(img[row, 0]) and grey(img[row, -1])
     # floor below, ceiling above
-    assert np.allclose(img[0, od.IMG_W // 2], od.CEIL_RGB, atol=0.02)
-    assert img[-1, od.IMG_W // 2, 0] > img[-1, od.IMG_W // 2, 2]  # beige floor
+    assert np.allclose(img[0, render.IMG_W // 2], render.CEIL_RGB, atol=0.02)
+    assert img[-1, render.IMG_W // 2, 0] > img[-1, render.IMG_W // 2, 2]  # beige floor
     # a person behind the robot is not drawn; with nobody, no red pixels
     pos2, valid2 = _people(P, [[-1.0, 0.0]])
-    img2 = np.asarray(od.render_view(hallway.field(), jnp.asarray([0.0, 0.0, 0.0], F32), pos2, valid2, palette))
-    assert not np.all(np.abs(img2 - od.COLOUR_RGB[0]) < 0.25, -1).any()
+    img2 = np.asarray(render.render_view(hallway.field(), jnp.asarray([0.0, 0.0, 0.0], F32), pos2, valid2, palette))
+    assert not np.all(np.abs(img2 - render.COLOUR_RGB[0]) < 0.25, -1).any()
 
 
 def test_lidar_hits_walls_and_people(hallway):
     P = 12
     pos, valid = _people(P, [[2.0, 0.0]])
     pose = jnp.asarray([0.0, 0.0, 0.0], F32)
-    pts, ok = od.lidar_points(hallway.field(), pose, pos, valid, pose, pos)
+    pts, ok = lidar.lidar_points(hallway.field(), pose, pos, valid, pose, pos)
     pts, ok = np.asarray(pts), np.asarray(ok)
-    assert pts.shape == (od.N_POINTS, 4) and ok.shape == (od.N_POINTS,)
+    assert pts.shape == (lidar.N_POINTS, 4) and ok.shape == (lidar.N_POINTS,)
     now = ok & (pts[:, 3] == 0)
     side = now & (np.abs(pts[:, 0]) < 0.5)  # beams straight left / right
     assert np.allclose(np.abs(pts[side, 1]), 1.25, atol=0.05)  # wall surface at 1.3 - 0.05 m
     ahead = now & (np.abs(pts[:, 1]) < 0.05) & (pts[:, 0] > 0)
     assert np.any(np.abs(pts[ahead, 0] - 1.75) < 0.05)  # the person's front at 2 - 0.25 m
-    assert np.all((pts[now, 2] >= 0) & (pts[now, 2] <= od.WALL_HEIGHT + 1e-4))
+    assert np.all((pts[now, 2] >= 0) & (pts[now, 2] <= render.WALL_HEIGHT + 1e-4))
     # the earlier sweep, from 0.5 m behind, lands in the current frame (motion compensated)
     prev = jnp.asarray([-0.5, 0.0, 0.0], F32)
-    pts2, ok2 = od.lidar_points(hallway.field(), pose, pos, valid, prev, pos)
+    pts2, ok2 = lidar.lidar_points(hallway.field(), pose, pos, valid, prev, pos)
     old = np.asarray(ok2) & (np.asarray(pts2)[:, 3] == 1)
     ahead_old = old & (np.abs(np.asarray(pts2)[:, 1]) < 0.05) & (np.asarray(pts2)[:, 0] > 0)
     assert np.any(np.abs(np.asarray(pts2)[ahead_old, 0] - 1.75) < 0.05)
 
 
 def test_action_of_classifies():
-    t = np.linspace(0.1, 1.0, od.HORIZON)[:, None]
+    t = np.linspace(0.1, 1.0, features.HORIZON)[:, None]
     z = 0 * t
-    assert od.ACTIONS[od.action_of(np.hstack([2.4 * t, z, z]))] == "straight"
-    assert od.ACTIONS[od.action_of(np.hstack([2.2 * t, -0.6 * t, z]))] == "keep_right"
-    assert od.ACTIONS[od.action_of(np.hstack([2.2 * t, 0.6 * t, z]))] == "keep_left"
-    assert od.ACTIONS[od.action_of(np.hstack([1.5 * t, 1.0 * t, 1.2 * t]))] == "turn_left"
-    assert od.ACTIONS[od.action_of(np.hstack([1.5 * t, -1.0 * t, -1.2 * t]))] == "turn_right"
-    assert od.ACTIONS[od.action_of(np.hstack([0.3 * t, z, z]))] == "yield"
+    assert captions.ACTIONS[features.action_of(np.hstack([2.4 * t, z, z]))] == "straight"
+    assert captions.ACTIONS[features.action_of(np.hstack([2.2 * t, -0.6 * t, z]))] == "keep_right"
+    assert captions.ACTIONS[features.action_of(np.hstack([2.2 * t, 0.6 * t, z]))] == "keep_left"
+    assert captions.ACTIONS[features.action_of(np.hstack([1.5 * t, 1.0 * t, 1.2 * t]))] == "turn_left"
+    assert captions.ACTIONS[features.action_of(np.hstack([1.5 * t, -1.0 * t, -1.2 * t]))] == "turn_right"
+    assert captions.ACTIONS[features.action_of(np.hstack([0.3 * t, z, z]))] == "yield"
     with pytest.raises(ValueError):
-        od.action_of(np.zeros(5))
+        features.action_of(np.zeros(5))
 
 
 def test_future_in_frame_and_blending():
     poses = np.stack([np.arange(60) * 0.05, np.zeros(60), np.zeros(60)], -1)
-    fut = od.future_in_frame(poses, 0, poses[0])
-    assert fut.shape == (od.HORIZON, 3)
-    np.testing.assert_allclose(fut[:, 0], 0.05 * od.FUTURE_STRIDE * np.arange(1, od.HORIZON + 1), atol=1e-5)
+    fut = features.future_in_frame(poses, 0, poses[0])
+    assert fut.shape == (features.HORIZON, 3)
+    np.testing.assert_allclose(fut[:, 0], 0.05 * features.FUTURE_STRIDE * np.arange(1, features.HORIZON + 1), atol=1e-5)
     # the end is repeated past the episode
-    assert od.future_in_frame(poses, 55, poses[55])[-1, 0] == pytest.approx(0.05 * 4, abs=1e-5)
+    assert features.future_in_frame(poses, 55, poses[55])[-1, 0] == pytest.approx(0.05 * 4, abs=1e-5)
     # displaced 0.3 m to the left: the labels start there and blend back onto the expert's line
     frame = poses[0] + np.array([0.0, 0.3, 0.0])
-    f2 = od.future_in_frame(poses, 0, frame, offset=np.array([0.0, 0.3]))
+    f2 = features.future_in_frame(poses, 0, frame, offset=np.array([0.0, 0.3]))
     assert f2[0, 1] == pytest.approx(-0.3 * 0.2, abs=1e-5)
-    np.testing.assert_allclose(f2[od.HORIZON // 2:, 1], -0.3, atol=1e-5)
+    np.testing.assert_allclose(f2[features.HORIZON // 2:, 1], -0.3, atol=1e-5)
 
 
 def test_goal_features(hallway):
-    g = od.goal_features(hallway.global_path(), hallway.goal, np.array([0.0, 0.0, 0.0]))
-    assert g.shape == (od.GOAL_DIM,)
+    g = features.goal_features(hallway.global_path(), hallway.goal, np.array([0.0, 0.0, 0.0]))
+    assert g.shape == (features.GOAL_DIM,)
     assert g[0] == pytest.approx(1.0, abs=0.05) and abs(g[1]) < 0.1  # 3 m straight ahead
-    g2 = od.goal_features(hallway.global_path(), hallway.goal, np.array([0.0, 0.0, np.pi / 2]))
+    g2 = features.goal_features(hallway.global_path(), hallway.goal, np.array([0.0, 0.0, np.pi / 2]))
     assert g2[1] == pytest.approx(-1.0, abs=0.05)  # turned left: the carrot is on the right
 
 
 def test_template_captions_carry_the_action_and_tokenize():
-    for a, name in enumerate(od.ACTIONS):
-        scene = od.CaptionScene("a corridor", "d", 0, np.array([[2.0, 0.5]]), np.array([[-1.0, 0.0]]),
+    for a, name in enumerate(captions.ACTIONS):
+        scene = captions.CaptionScene("a corridor", "d", 0, np.array([[2.0, 0.5]]), np.array([[-1.0, 0.0]]),
                                 np.array([2]), np.array([-1]), (1.2, 1.3, 9.0), a)
         for v in (0, 1):
-            c = od.TemplateCaptioner().caption(None, scene, variant=v)
+            c = captions.TemplateCaptioner().caption(None, scene, variant=v)
             assert c.ok and c.action == a
-            assert od.action_from_text(c.long) == a, (name, c.long)
+            assert captions.action_from_text(c.long) == a, (name, c.long)
             assert "orange" in c.long and "walking towards you" in c.long and "narrow hallway" in c.long
             assert TOK.unknown_words(c.long) == [] and TOK.unknown_words(c.short) == []
-            assert len(TOK.split(c.long)) + 2 <= od.LONG_LEN and len(TOK.split(c.short)) + 2 <= od.SHORT_LEN
-    assert not od.TemplateCaptioner().caption(None, None).ok
+            assert len(TOK.split(c.long)) + 2 <= captions.LONG_LEN and len(TOK.split(c.short)) + 2 <= captions.SHORT_LEN
+    assert not captions.TemplateCaptioner().caption(None, None).ok
 
 
 def test_parse_caption_reply():
-    c = od.parse_caption_reply('```json\n{"long": "People ahead. You should keep to the right.", "short": "people"}\n```')
-    assert c.ok and c.short == "people" and od.ACTIONS[c.action] == "keep_right"
-    c = od.parse_caption_reply("A busy hall. The robot should slow down and wait.")
-    assert c.ok and od.ACTIONS[c.action] == "yield" and c.short == "A busy hall"
+    c = captions.parse_caption_reply('```json\n{"long": "People ahead. You should keep to the right.", "short": "people"}\n```')
+    assert c.ok and c.short == "people" and captions.ACTIONS[c.action] == "keep_right"
+    c = captions.parse_caption_reply("A busy hall. The robot should slow down and wait.")
+    assert c.ok and captions.ACTIONS[c.action] == "yield" and c.short == "A busy hall"
 
 
 def test_openai_captioner_fails_softly():
-    cap = od.OpenAICaptioner("http://127.0.0.1:9/v1", "m", timeout=0.5)
+    cap = captions.OpenAICaptioner("http://127.0.0.1:9/v1", "m", timeout=0.5)
     c = cap.caption(np.zeros((8, 8, 3), np.float32))
     assert not c.ok
     with pytest.raises(ValueError):
-        od.OpenAICaptioner("ftp://x", "m")
+        captions.OpenAICaptioner("ftp://x", "m")
 
 
 def test_tokenizer():
@@ -156,39 +156,39 @@ def test_samples_from_a_short_episode(hallway):
     robot = np.stack([np.arange(T) * 0.05, np.zeros(T), np.zeros(T)], -1).astype(np.float32)
     people = np.repeat(np.asarray(hallway.peds.pos)[None], T, 0)
     res = SimpleNamespace(robot=robot, people=people, dt=0.1)
-    s = od.samples_from_episode(hallway, res, every=10, augment=1, rng=np.random.default_rng(0))
+    s = dataset.samples_from_episode(hallway, res, every=10, augment=1, rng=np.random.default_rng(0))
     assert len(s) >= 3
-    assert s.image.shape[1:] == (od.IMG_H, od.IMG_W, 3) and s.image.dtype == np.uint8
-    assert s.points.shape[1:] == (od.N_POINTS, 4) and s.future.shape[1:] == (od.HORIZON, 3)
+    assert s.image.shape[1:] == (render.IMG_H, render.IMG_W, 3) and s.image.dtype == np.uint8
+    assert s.points.shape[1:] == (lidar.N_POINTS, 4) and s.future.shape[1:] == (features.HORIZON, 3)
     assert len(s.long) == len(s) == len(s.short)
-    assert all(od.action_from_text(t) == a for t, a in zip(s.long, s.action))
-    assert s.future[0, 0, 0] == pytest.approx(0.05 * od.FUTURE_STRIDE, abs=1e-4)
+    assert all(captions.action_from_text(t) == a for t, a in zip(s.long, s.action))
+    assert s.future[0, 0, 0] == pytest.approx(0.05 * features.FUTURE_STRIDE, abs=1e-4)
     sub = s.subset([0, 1])
     assert len(sub) == 2 and sub.long == s.long[:2]
 
 
 def test_with_action_rewrites_only_the_action():
-    scene = od.CaptionScene("a corridor", "d", 0, np.array([[2.0, 0.5]]), np.array([[-1.0, 0.0]]),
-                            np.array([2]), np.array([-1]), (1.2, 1.3, 9.0), od.ACTIONS.index("straight"))
+    scene = captions.CaptionScene("a corridor", "d", 0, np.array([[2.0, 0.5]]), np.array([[-1.0, 0.0]]),
+                            np.array([2]), np.array([-1]), (1.2, 1.3, 9.0), captions.ACTIONS.index("straight"))
     for v in (0, 1):
-        c = od.TemplateCaptioner().caption(None, scene, variant=v).long
-        for a in range(len(od.ACTIONS)):
-            c2 = od.with_action(c, a)
-            assert od.action_from_text(c2) == a
+        c = captions.TemplateCaptioner().caption(None, scene, variant=v).long
+        for a in range(len(captions.ACTIONS)):
+            c2 = captions.with_action(c, a)
+            assert captions.action_from_text(c2) == a
             # the description before the action is untouched
             assert c2.split("you should")[0] == c.split("you should")[0]
-    assert od.with_action("A busy hall. The robot should wait.", 0) is None
+    assert captions.with_action("A busy hall. The robot should wait.", 0) is None
 
 
 def test_extend_to_goal_continues_the_labels():
     poses = np.stack([np.arange(20) * 0.1, np.zeros(20), np.full(20, 0.1)], -1)
     goal = np.array([2.15, 0.0])
-    ext = od.extend_to_goal(poses, goal)
+    ext = features.extend_to_goal(poses, goal)
     np.testing.assert_array_equal(ext[:20], poses)
     np.testing.assert_allclose(ext[-1, :2], goal)
     assert np.all(np.linalg.norm(np.diff(ext[19:, :2], axis=0), axis=1) <= 0.1 + 1e-9)
     assert np.all(ext[20:, 2] == 0.1)  # heading kept
-    np.testing.assert_array_equal(od.extend_to_goal(poses, poses[-1, :2]), poses)
+    np.testing.assert_array_equal(features.extend_to_goal(poses, poses[-1, :2]), poses)
 
 
 def test_labels_of_a_reached_episode_end_at_the_goal(hallway):
@@ -200,14 +200,14 @@ def test_labels_of_a_reached_episode_end_at_the_goal(hallway):
     people = np.repeat(np.asarray(hallway.peds.pos)[None], 16, 0)
     for reached, end in ((False, x_end), (True, float(hallway.goal[0]))):
         res = SimpleNamespace(robot=robot, people=people, dt=0.1, reached=reached)
-        s = od.samples_from_episode(hallway, res, every=10, augment=0, rng=np.random.default_rng(0))
+        s = dataset.samples_from_episode(hallway, res, every=10, augment=0, rng=np.random.default_rng(0))
         last = s.future[-1, -1, 0] + robot[s.t[-1], 0]  # robot frame = world shifted (yaw 0)
         assert last == pytest.approx(end, abs=1e-3)
 
 
 def test_expert_action_is_judged_from_the_state_not_the_robot(hallway):
     """The LLU's offline captioner labels a view with what the expert would do from there."""
-    from splatsearch.social.runner import expert_rollout
+    from splatsearch.social.convoi.runner import expert_rollout
 
     start = np.asarray(hallway.start, np.float32)
     zero = np.zeros(2, np.float32)
@@ -215,10 +215,10 @@ def test_expert_action_is_judged_from_the_state_not_the_robot(hallway):
     assert poses.shape[1] == 3 and 2 <= len(poses) <= 9
     np.testing.assert_allclose(poses[0], start)
     assert poses[-1, 0] > start[0]  # it heads down the hallway toward the goal
-    assert od.ACTIONS[od.expert_action(hallway, start, zero, hallway.peds, 0)] == "straight"
+    assert captions.ACTIONS[features.expert_action(hallway, start, zero, hallway.peds, 0)] == "straight"
     # the same place faced the wrong way: the expert turns round, whatever a planner would do
     back = start + np.array([0.0, 0.0, np.pi], np.float32)
-    assert od.ACTIONS[od.expert_action(hallway, back, zero, hallway.peds, 0)] in ("turn_left", "turn_right", "yield")
+    assert captions.ACTIONS[features.expert_action(hallway, back, zero, hallway.peds, 0)] in ("turn_left", "turn_right", "yield")
     with pytest.raises(ValueError):
         expert_rollout(hallway, start, zero, hallway.peds, 0, 0)
     with pytest.raises(ValueError, match="pose must be"):

@@ -5,9 +5,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from splatsearch.social import llu, sc_clip, tpn, tsm
-from splatsearch.social.olivia_data import ACTIONS, GOAL_DIM, HORIZON, IMG_H, IMG_W, N_POINTS
-from splatsearch.social.tokenizer import DEFAULT_TOKENIZER as TOK
+from splatsearch.social.olivia import llu
+from splatsearch.social.olivia import sc_clip
+from splatsearch.social.olivia import tpn
+from splatsearch.social.olivia import tsm
+from splatsearch.social.olivia.captions import ACTIONS
+from splatsearch.social.olivia.features import GOAL_DIM, HORIZON
+from splatsearch.social.olivia.lidar import N_POINTS
+from splatsearch.social.olivia.render import IMG_H, IMG_W
+from splatsearch.social.olivia.tokenizer import DEFAULT_TOKENIZER as TOK
 
 F32 = jnp.float32
 SMALL_CLIP = sc_clip.SCCLIPConfig(width=32, depth=1, heads=2, mlp=64, text_width=32, text_depth=1, text_heads=2,
@@ -260,7 +266,7 @@ def test_tsm_loss_never_drops_text_from_counterfactual_rows():
 
 
 def test_retrieve_votes_on_the_action():
-    from splatsearch.social.olivia import N_VOTES, retrieve
+    from splatsearch.social.olivia.planner import N_VOTES, retrieve
 
     # the nearest caption says "yield" (5), but the next three neighbours say "keep_left" (2)
     emb = np.array([[1.0, 0.0], [0.99, 0.14], [0.98, 0.2], [0.97, 0.24], [0.0, 1.0]], np.float32)

@@ -8,11 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from splatsearch.social import olivia_train as ot
-from splatsearch.social import sc_clip
-from splatsearch.social.llu import LLUConfig, TextDB, build_text_db, llu_update
-from splatsearch.social.olivia_data import IMG_H, IMG_W
-from splatsearch.social.tokenizer import DEFAULT_TOKENIZER as TOK
+from splatsearch.social.olivia import train as ot
+from splatsearch.social.olivia import sc_clip
+from splatsearch.social.olivia.llu import LLUConfig, TextDB, build_text_db, llu_update
+from splatsearch.social.olivia.render import IMG_H, IMG_W
+from splatsearch.social.olivia.tokenizer import DEFAULT_TOKENIZER as TOK
 
 TINY = sc_clip.SCCLIPConfig(width=32, depth=1, heads=2, mlp=64, text_width=32, text_depth=1, text_heads=2,
                             text_mlp=64, embed=16, pce_k=4, text_len=40)
@@ -130,7 +130,7 @@ def test_corrupt_checkpoints_are_rejected(tmp_path):
 
 
 def test_register_olivia_adds_train_and_eval():
-    from splatsearch.social.olivia_cli import cmd_eval, cmd_train, register_olivia
+    from splatsearch.social.olivia.cli import cmd_eval, cmd_train, register_olivia
 
     parser = argparse.ArgumentParser()
     sub = parser.add_subparsers(dest="cmd")
@@ -147,10 +147,11 @@ def test_register_olivia_adds_train_and_eval():
 
 @pytest.mark.slow
 def test_closed_loop_episode_with_untrained_networks():
-    from splatsearch.social import tpn, tsm
-    from splatsearch.social.llu import LLUBuffer
-    from splatsearch.social.olivia import OliviaConfig, OliviaNav, run_olivia_episode
-    from splatsearch.social.scenarios import make_scenario
+    from splatsearch.social.olivia import tpn
+    from splatsearch.social.olivia import tsm
+    from splatsearch.social.olivia.llu import LLUBuffer
+    from splatsearch.social.olivia.planner import OliviaConfig, OliviaNav, run_olivia_episode
+    from splatsearch.social.convoi.scenarios import make_scenario
 
     cfg = OliviaConfig()
     k = jax.random.split(jax.random.PRNGKey(0), 3)
@@ -163,7 +164,7 @@ def test_closed_loop_episode_with_untrained_networks():
     assert res.robot.shape == (13, 3) and res.people.shape[0] == 13 and res.cmds.shape == (12, 2)
     assert buf.full and buf.images[0].shape == (IMG_H, IMG_W, 3)
     # the untrained planner's views are captioned with the expert's action from the same state
-    from splatsearch.social.olivia_data import expert_action
+    from splatsearch.social.olivia.features import expert_action
 
     scn = make_scenario("hallway", 1000)
     assert buf.scenes[0].action == expert_action(scn, scn.start, np.zeros(2, np.float32), scn.peds, 0)
@@ -182,12 +183,7 @@ def _plans():
 
 
 def test_tsm_rows_add_counterfactual_captions():
-    from splatsearch.social.olivia_data import (
-        ACTIONS,
-        CaptionScene,
-        TemplateCaptioner,
-        action_from_text,
-    )
+    from splatsearch.social.olivia.captions import ACTIONS, CaptionScene, TemplateCaptioner, action_from_text
 
     scene = CaptionScene("a corridor", "d", 0, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int),
                          np.zeros(0, int), (1.2, 1.3, 9.0), ACTIONS.index("straight"))
@@ -233,7 +229,7 @@ def test_map_rows_pads_to_one_shape_and_val_batches():
 
 
 def test_cli_defaults_match_train_config():
-    from splatsearch.social.olivia_cli import register_olivia
+    from splatsearch.social.olivia.cli import register_olivia
 
     parser = argparse.ArgumentParser()
     register_olivia(parser.add_subparsers(dest="cmd"))
@@ -261,13 +257,8 @@ def test_fill_buffer_drives_episodes_until_full(monkeypatch):
 
 @pytest.mark.slow  # two small TSM trainings (XLA compilation dominates)
 def test_counterfactual_rows_make_the_tsm_select_by_the_caption():
-    from splatsearch.social import tsm
-    from splatsearch.social.olivia_data import (
-        ACTIONS,
-        CaptionScene,
-        TemplateCaptioner,
-        action_from_text,
-    )
+    from splatsearch.social.olivia import tsm
+    from splatsearch.social.olivia.captions import ACTIONS, CaptionScene, TemplateCaptioner, action_from_text
 
     rng = np.random.default_rng(0)
     plans = _plans()

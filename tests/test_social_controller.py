@@ -3,8 +3,8 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from splatsearch.social import metrics as M
-from splatsearch.social.controller import (
+from splatsearch.social.convoi import metrics as M
+from splatsearch.social.convoi.controller import (
     FollowerConfig,
     PIDGains,
     pid_init,

@@ -6,11 +6,11 @@ import socket
 
 import numpy as np
 import pytest
-from splatsearch.social.convoi import CoNVOI, CoNVOIConfig
-from splatsearch.social.geometry import world_to_robot
-from splatsearch.social.runner import make_world, people_gaps, run_episode
-from splatsearch.social.scenarios import SCENARIOS, make_scenario
-from splatsearch.social.vlm import RuleBasedVLM, VLMResult
+from splatsearch.social.convoi.pipeline import CoNVOI, CoNVOIConfig
+from splatsearch.social.convoi.geometry import world_to_robot
+from splatsearch.social.convoi.runner import make_world, people_gaps, run_episode
+from splatsearch.social.convoi.scenarios import SCENARIOS, make_scenario
+from splatsearch.social.convoi.vlm import RuleBasedVLM, VLMResult
 
 
 class Failing:
@@ -62,7 +62,7 @@ def test_latency_delays_the_reference_path(hallway):
 
 
 def test_extrapolation_extends_the_path_when_the_context_is_unchanged(hallway):
-    from splatsearch.social.pedsim import make_state
+    from splatsearch.social.convoi.pedsim import make_state
 
     scn, world = hallway
     nobody = make_state(np.zeros((0, 2)), [], [])  # an empty corridor: the context cannot change
@@ -163,7 +163,7 @@ def _free_port() -> int:
 
 
 def test_viewer_shows_a_scene_headless():
-    from splatsearch.social.viewer import SocialViewer
+    from splatsearch.social.convoi.viewer import SocialViewer
 
     scn = make_scenario("static_groups", 0)
     v = SocialViewer(port=_free_port())
@@ -195,7 +195,7 @@ def test_viewer_draws_people_in_a_headless_browser():
 
     import viser.transforms as vtf
 
-    from splatsearch.social.viewer import SocialViewer
+    from splatsearch.social.convoi.viewer import SocialViewer
 
     flags = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
              "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]

@@ -4,9 +4,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from splatsearch.nav.grid import GridSpec
-from splatsearch.social import costs
-from splatsearch.social.costs import CriticSpec
-from splatsearch.social.dwa import (
+from splatsearch.social.convoi import costs
+from splatsearch.social.convoi.costs import CriticSpec
+from splatsearch.social.convoi.dwa import (
     DEFAULT_CRITICS,
     DWAConfig,
     dynamic_window,
@@ -17,7 +17,7 @@ from splatsearch.social.dwa import (
     rollout,
     sample_velocities,
 )
-from splatsearch.social.geometry import distance_field_from_capsules, field_lookup
+from splatsearch.social.convoi.geometry import distance_field_from_capsules, field_lookup
 
 # a 3 m wide, 10 m long corridor with a pillar (r = 0.3 m) slightly left of its centre line
 PILLAR = (5.0, 0.1, 0.3)

@@ -6,8 +6,8 @@ import similaritymeasures as sm
 from scipy.spatial.distance import cosine as scipy_cosine
 from scipy.spatial.distance import directed_hausdorff
 from splatsearch.nav.grid import GridSpec
-from splatsearch.social import metrics as M
-from splatsearch.social.geometry import distance_field_from_capsules
+from splatsearch.social.convoi import metrics as M
+from splatsearch.social.convoi.geometry import distance_field_from_capsules
 
 RNG = np.random.default_rng(7)
 PAIRS = [(np.cumsum(RNG.normal(size=(n, 2)), 0), np.cumsum(RNG.normal(size=(m, 2)), 0))
@@ -134,7 +134,7 @@ def test_bad_inputs_raise():
 
 
 def test_pad_rows_pads_masks_and_guards_capacity():
-    from splatsearch.social.geometry import pad_rows
+    from splatsearch.social.convoi.geometry import pad_rows
 
     out, valid = pad_rows([[1, 2], [3, 4]], 4)
     assert out.shape == (4, 2) and out.dtype == np.float32 and valid.tolist() == [True, True, False, False]

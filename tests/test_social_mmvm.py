@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-from splatsearch.social.geometry import distance_field_from_capsules
-from splatsearch.social.mmvm import (
+from splatsearch.social.convoi.geometry import distance_field_from_capsules
+from splatsearch.social.convoi.mmvm import (
     CameraModel,
     MarkerGrid,
     apply_homography,
@@ -15,8 +15,8 @@ from splatsearch.social.mmvm import (
     render_view,
     select_candidates,
 )
-from splatsearch.social.perception import local_maps
-from splatsearch.social.scenarios import GRID
+from splatsearch.social.convoi.perception import local_maps
+from splatsearch.social.convoi.scenarios import GRID
 
 CAM = CameraModel.from_fov(320, 240, 90.0, height_m=0.6, pitch=-0.35)
 

@@ -4,9 +4,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from splatsearch.social import pedsim
-from splatsearch.social.geometry import pad_capsules
-from splatsearch.social.scenarios import (
+from splatsearch.social.convoi import pedsim
+from splatsearch.social.convoi.geometry import pad_capsules
+from splatsearch.social.convoi.scenarios import (
     GRID,
     SCENARIOS,
     THESIS_SCENARIOS,

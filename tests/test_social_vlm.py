@@ -11,7 +11,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from splatsearch.social.context import (
+from splatsearch.social.convoi.context import (
     CONTEXTS,
     PROMPT_TEMPLATE,
     CLIPContextClassifier,
@@ -19,8 +19,8 @@ from splatsearch.social.context import (
     RuleContextClassifier,
     behaviour_prompt,
 )
-from splatsearch.social.mmvm import Markers
-from splatsearch.social.vlm import (
+from splatsearch.social.convoi.mmvm import Markers
+from splatsearch.social.convoi.vlm import (
     MarkerScene,
     OpenAICompatibleVLM,
     ReplayVLM,
@@ -200,9 +200,9 @@ def test_prompts_and_the_context_table():
                                            ("crossing", "an open indoor space"),
                                            ("blind_corner", "an indoor corridor")])
 def test_rule_context_classifier_on_the_scenarios(name, expected):
-    from splatsearch.social.convoi import CoNVOI
-    from splatsearch.social.runner import make_world
-    from splatsearch.social.scenarios import make_scenario
+    from splatsearch.social.convoi.pipeline import CoNVOI
+    from splatsearch.social.convoi.runner import make_world
+    from splatsearch.social.convoi.scenarios import make_scenario
 
     scn = make_scenario(name, 0)
     obs = CoNVOI(RuleBasedVLM()).observe(scn.start, scn.peds, make_world(scn, "convoi"))
@@ -212,9 +212,9 @@ def test_rule_context_classifier_on_the_scenarios(name, expected):
 
 
 def test_blind_corner_is_recognised_near_the_corner():
-    from splatsearch.social.convoi import CoNVOI
-    from splatsearch.social.runner import make_world
-    from splatsearch.social.scenarios import make_scenario
+    from splatsearch.social.convoi.pipeline import CoNVOI
+    from splatsearch.social.convoi.runner import make_world
+    from splatsearch.social.convoi.scenarios import make_scenario
 
     scn = make_scenario("blind_corner", 0)
     obs = CoNVOI(RuleBasedVLM()).observe(np.array([3.5, 0.0, 0.0]), scn.peds, make_world(scn, "convoi"))

@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 from splatsearch.nav.grid import wrap_angle
 
-from .olivia_data import GOAL_DIM, HORIZON, N_POINTS
+from .features import GOAL_DIM, HORIZON
+from .lidar import N_POINTS
 
 F32 = jnp.float32
 

@@ -25,7 +25,7 @@ import urllib.error
 import urllib.request
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -127,11 +127,16 @@ class OpenAICompatibleVLM:
         self.max_tokens, self.temperature = int(max_tokens), float(temperature)
 
     def request_body(self, image: np.ndarray, prompt: str, valid: Sequence[int]) -> dict:
-        """The JSON body sent for one query."""
-        b64 = base64.b64encode(encode_png(image)).decode("ascii")
+        """The JSON body sent for one marker query."""
         text = (f"{prompt} Valid numbers: {', '.join(str(int(v)) for v in valid)}. "
                 "Answer with a JSON list of numbers in the order the robot should visit them, e.g. [3, 8, 12].")
-        return {"model": self.model, "temperature": self.temperature, "max_tokens": self.max_tokens,
+        return self.chat_body(image, text)
+
+    def chat_body(self, image: np.ndarray, text: str, max_tokens: int | None = None) -> dict:
+        """The JSON body of one chat completion: ``text`` and ``image`` (H, W, 3) as a PNG."""
+        b64 = base64.b64encode(encode_png(image)).decode("ascii")
+        return {"model": self.model, "temperature": self.temperature,
+                "max_tokens": self.max_tokens if max_tokens is None else int(max_tokens),
                 "messages": [{"role": "user", "content": [
                     {"type": "text", "text": text},
                     {"type": "image_url", "image_url": {"url": f"data:image/png;base64,{b64}"}}]}]}
@@ -151,19 +156,17 @@ class OpenAICompatibleVLM:
                 detail = ""
             return e.code, detail
 
-    def select_labels(self, image: np.ndarray, prompt: str, valid: Sequence[int], scene: Any = None) -> VLMResult:
-        """Query the endpoint; never raises for network or reply problems (``ok=False``)."""
+    def complete(self, body: dict) -> ChatReply:
+        """POST one chat-completion ``body`` with the retries and back-off; never raises for
+        network or reply problems (``ChatReply.content`` is None and ``error`` says why)."""
         t0 = time.perf_counter()
-        valid = [int(v) for v in valid]
-        if not valid:
-            return VLMResult(False, error="no valid markers to choose from", source="openai")
-        body = json.dumps(self.request_body(image, prompt, valid)).encode("utf-8")
+        data = json.dumps(body).encode("utf-8")
         err = "no attempt made"
         for attempt in range(self.retries + 1):
             if attempt:
                 time.sleep(self.backoff * 2 ** (attempt - 1))
             try:
-                status, text = self._post(body)
+                status, text = self._post(data)
             except (urllib.error.URLError, TimeoutError, OSError, ValueError) as e:
                 err = f"request failed: {type(e).__name__}: {getattr(e, 'reason', e)}"
                 continue
@@ -171,17 +174,36 @@ class OpenAICompatibleVLM:
                 err = f"HTTP {status}: {text[:200]}"
                 continue
             if status != 200:
-                return VLMResult(False, raw=text[:2000], error=f"HTTP {status}: {text[:200]}",
-                                 latency_s=time.perf_counter() - t0, source="openai")
+                return ChatReply(None, text[:2000], f"HTTP {status}: {text[:200]}", time.perf_counter() - t0)
             content, why = _content_of(text)
             if content is None:
-                return VLMResult(False, raw=text[:2000], error=why, latency_s=time.perf_counter() - t0, source="openai")
-            labels = parse_labels(content, valid)
-            if not labels:
-                return VLMResult(False, raw=content[:2000], error="the reply names no valid marker",
-                                 latency_s=time.perf_counter() - t0, source="openai")
-            return VLMResult(True, labels, content[:2000], None, time.perf_counter() - t0, "openai")
-        return VLMResult(False, error=err, latency_s=time.perf_counter() - t0, source="openai")
+                return ChatReply(None, text[:2000], why, time.perf_counter() - t0)
+            return ChatReply(content, content[:2000], "", time.perf_counter() - t0)
+        return ChatReply(None, "", err, time.perf_counter() - t0)
+
+    def select_labels(self, image: np.ndarray, prompt: str, valid: Sequence[int], scene: Any = None) -> VLMResult:
+        """Query the endpoint; never raises for network or reply problems (``ok=False``)."""
+        valid = [int(v) for v in valid]
+        if not valid:
+            return VLMResult(False, error="no valid markers to choose from", source="openai")
+        reply = self.complete(self.request_body(image, prompt, valid))
+        if reply.content is None:
+            return VLMResult(False, raw=reply.raw, error=reply.error, latency_s=reply.latency_s, source="openai")
+        labels = parse_labels(reply.content, valid)
+        if not labels:
+            return VLMResult(False, raw=reply.raw, error="the reply names no valid marker", latency_s=reply.latency_s,
+                             source="openai")
+        return VLMResult(True, labels, reply.raw, None, reply.latency_s, "openai")
+
+
+class ChatReply(NamedTuple):
+    """One chat completion: the message ``content`` (None on failure), the ``raw`` reply text
+    (truncated), an ``error`` message ("" on success) and the latency in seconds."""
+
+    content: str | None
+    raw: str
+    error: str
+    latency_s: float
 
 
 def _content_of(text: str) -> tuple[str | None, str]:
@@ -208,7 +230,7 @@ def _content_of(text: str) -> tuple[str | None, str]:
 class MarkerScene:
     """What :class:`RuleBasedVLM` sees besides the image (robot frame, metres, m/s).
 
-    markers: :class:`splatsearch.social.mmvm.Markers`; people: (k, 2); people_vel: (k, 2);
+    markers: :class:`splatsearch.social.convoi.mmvm.Markers`; people: (k, 2); people_vel: (k, 2);
     groups: (k,) labels (-1 alone); goal: (2,) the goal direction or point; clearance: callable
     mapping (n, 2) points to clearance (m) to the nearest obstacle (static or person).
     """

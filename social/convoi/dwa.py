@@ -30,15 +30,11 @@ import numpy as np
 from .costs import CRITICS, CostInputs, CriticSpec, time_to_collision
 from .geometry import F32, DistanceField, pad_rows
 
-# CoNVOI V-A: α1 = 10 heading, α2 = 7 obstacles, α3 = 1 velocity, α4 = 7.5 reference path, with
-# every term min-max normalised (σ). Kept for reference: in our corridor tests those three terms
-# alone creep to a stop in front of a pillar (slowing down shortens the rollout and so always
-# "improves" clearance), so the default adds a progress term and uses raw, un-normalised costs
-# (as Nav2's DWB critics do), which passes the pillar with margin. On that raw scale the
-# reference critic needs α4 = 15 to move the robot sideways against heading and progress
-# (measured on the static-groups scenario, where 7.5 kept the robot on the route through the group).
-CONVOI_PAPER_CRITICS = (CriticSpec.make("heading", 10.0), CriticSpec.make("clearance", 7.0),
-                        CriticSpec.make("people", 7.0), CriticSpec.make("velocity", 1.0))
+# The paper's weights (CoNVOI V-A: heading 10, obstacles 7, velocity 1, reference 7.5, each term
+# min-max normalised) make the robot creep to a stop before a pillar: slowing down shortens the
+# rollout and so always "improves" clearance. The default adds a progress term and uses raw costs
+# (as Nav2's DWB critics do); on that scale the reference critic needs 15 to move the robot
+# sideways against heading and progress. The measurements are in docs/results.md.
 DEFAULT_CRITICS = (CriticSpec.make("heading", 5.0, normalize=False), CriticSpec.make("clearance", 7.0, normalize=False),
                    CriticSpec.make("people", 7.0, normalize=False), CriticSpec.make("velocity", 1.0, normalize=False),
                    CriticSpec.make("progress", 10.0, normalize=False))

@@ -41,7 +41,7 @@ from splatsearch.io import atomic_write_bytes
 
 from . import sc_clip, tpn, tsm
 from .llu import LLUBuffer, LLUConfig, TextDB, build_text_db, llu_update
-from .olivia import (
+from .planner import (
     VARIANT_LABELS,
     VARIANTS,
     OliviaConfig,
@@ -49,16 +49,10 @@ from .olivia import (
     retrieve,
     run_olivia_episode,
 )
-from .olivia_data import (
-    LONG_LEN,
-    SHORT_LEN,
-    Samples,
-    TemplateCaptioner,
-    action_of,
-    build_dataset,
-    with_action,
-)
-from .scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS, make_scenario
+from .captions import LONG_LEN, SHORT_LEN, TemplateCaptioner, with_action
+from .dataset import Samples, build_dataset
+from .features import action_of
+from ..convoi.scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS, make_scenario
 from .tokenizer import DEFAULT_TOKENIZER
 
 FORMAT = "splatsearch-olivia-checkpoint"
@@ -350,7 +344,7 @@ def tsm_rows(trajs: np.ndarray, s: Samples, counterfactual: bool = True) -> tupl
 
     Each sample gives its own long caption with its k*. With ``counterfactual``, each other action
     that one of its K plans performs gives one more row: the caption rewritten to that action
-    (:func:`~splatsearch.social.olivia_data.with_action`) and k* the plan that performs it closest
+    (:func:`~splatsearch.social.olivia.captions.with_action`) and k* the plan that performs it closest
     to the expert. Without them the expert's action is nearly always that of the plan closest to
     the expert, which the plans alone reveal, and the TSM learns to ignore E_T.
 
@@ -523,7 +517,7 @@ def _stage_summary(r: StageResult) -> dict:
 def episode_metrics(res, ref) -> dict:
     """MSE (m²) and Hausdorff (m) against the expert path ``ref`` (EpisodeResult), PSV (s, edge
     gap < 0.25 m), goal reached, plan ms."""
-    from .metrics import hausdorff, mse, psv_duration
+    from ..convoi.metrics import hausdorff, mse, psv_duration
 
     return {"mse": mse(res.robot, ref.robot), "haus": hausdorff(res.robot, ref.robot),
             "psv": psv_duration(res.robot[:, :2], res.people, res.dt, 0.25, valid=res.active, robot_radius=0.25,
@@ -536,11 +530,11 @@ def _mean(rows: list[dict]) -> dict:
 
 
 def run_baseline(scn, kind: str):
-    from .runner import run_episode
+    from ..convoi.runner import run_episode
 
     if kind == "convoi":
-        from .convoi import CoNVOI
-        from .vlm import RuleBasedVLM
+        from ..convoi.pipeline import CoNVOI
+        from ..convoi.vlm import RuleBasedVLM
 
         return run_episode(scn, "convoi", convoi=CoNVOI(RuleBasedVLM()))
     return run_episode(scn, kind)

@@ -1,7 +1,7 @@
 """An offline word-level tokenizer for the SC-CLIP text encoder (SCTE).
 
 It ships with the code: a fixed vocabulary (:data:`VOCAB`) covering the caption templates of
-:mod:`splatsearch.social.olivia_data` and the everyday words a real VLM uses to describe people,
+:mod:`splatsearch.social.olivia.dataset` and the everyday words a real VLM uses to describe people,
 places and motion, plus ``n_hash`` hashed buckets for every other word. Hashing (a stable
 FNV-1a, not Python's salted ``hash``) means a caption from a real VLM never fails to encode: an
 unseen word lands in a bucket whose embedding the LLU can still learn.

@@ -4,7 +4,7 @@
 * SCIE: a small ViT (patch embedding, CLS token, pre-LN transformer blocks) over the egocentric
   view (IMG_H, IMG_W, 3) -> E_I (D,). The thesis uses ViT-L/14; this is the same architecture at
   CPU scale (:class:`SCCLIPConfig` scales it up).
-* SCTE: a transformer over word tokens (:mod:`splatsearch.social.tokenizer`) with a key-padding
+* SCTE: a transformer over word tokens (:mod:`splatsearch.social.olivia.tokenizer`) with a key-padding
   mask and masked mean pooling -> E_T (D,).
 * eq 3: ``CE(F_I(I) · F_T(T_l)^T, labels) + CE(PCE(F_I(I)) · F_T(T_s)^T, labels)`` on unit
   vectors with a learnable logit scale (CLIP). The long caption aligns with the full image
@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .olivia_data import IMG_H, IMG_W, LONG_LEN, SHORT_LEN
+from .captions import LONG_LEN, SHORT_LEN
+from .render import IMG_H, IMG_W
 from .tokenizer import DEFAULT_TOKENIZER
 
 F32 = jnp.float32

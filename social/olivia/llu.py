@@ -1,7 +1,7 @@
 """OLiVia-Nav's Lifelong Learning Updater (LLU, thesis 3.2.1.2, eq 4).
 
 During navigation the LLU stores images in a buffer of |B| images. When it is full, the images are
-captioned by the large VLM (any :class:`~splatsearch.social.olivia_data.Captioner`), and both
+captioned by the large VLM (any :class:`~splatsearch.social.olivia.captions.Captioner`), and both
 encoders are fine-tuned with the symmetric image-text loss of eq 4 at temperature μ:
 
     L = - Σ_{E_I ∈ V_I} log exp(h(E_I, E_T) / μ) / Σ_{E'_T ∈ V_T} exp(h(E_I, E'_T) / μ)
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .olivia_data import LONG_LEN, action_from_text
+from .captions import LONG_LEN, action_from_text
 from .sc_clip import SCCLIP, SCCLIPConfig, encode_texts, normalize, soft_targets
 from .tokenizer import DEFAULT_TOKENIZER, Tokenizer
 

@@ -12,7 +12,7 @@ crossing        open space, four people crossing the robot's line from both side
 
 Every scenario is built from a seed: start positions, speeds and timings are jittered with
 ``numpy.random.default_rng(seed)``, and the same seed gives the same scenario (and, through
-:func:`splatsearch.social.pedsim.step_key`, the same pedestrian noise). All scenarios share one
+:func:`splatsearch.social.convoi.pedsim.step_key`, the same pedestrian noise). All scenarios share one
 grid (16 m x 16 m, 5 cm cells) and one padded size, so the planners and the simulator compile
 once for all of them.
 
@@ -57,7 +57,7 @@ class Scenario:
     goal: (2,) m; peds: the initial :class:`PedState`; max_steps: episode cap (steps of dt);
     dt: s; lane_offset: the expert's preferred lateral offset from the global path (m, negative =
     keep right; 0 = none); context: the ground-truth context label (see
-    :mod:`splatsearch.social.context`); groups: lists of person indices walking or standing together.
+    :mod:`splatsearch.social.convoi.context`); groups: lists of person indices walking or standing together.
     """
 
     name: str

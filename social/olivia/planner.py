@@ -10,7 +10,7 @@ One planning cycle (:meth:`OliviaNav.plan`, one jitted function for the networks
 5. The NC (the social module's PID follower) tracks τ* until the next plan.
 
 :func:`run_olivia_episode` closes the loop in a scenario among the simulated people and returns
-the social module's :class:`~splatsearch.social.runner.EpisodeResult`, so that the same metrics
+the social module's :class:`~splatsearch.social.convoi.runner.EpisodeResult`, so that the same metrics
 apply to OLiVia-Nav, DWA, CoNVOI and the expert. The ablations switch E_I (TPN), E_L (TPN) or
 E_T (TSM) off.
 """
@@ -25,15 +25,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import pedsim
-from .controller import FollowerConfig, follow_step, follower_init
-from .dwa import step_unicycle
-from .geometry import F32, field_lookup, robot_to_world
+from ..convoi import pedsim
+from ..convoi.controller import FollowerConfig, follow_step, follower_init
+from ..convoi.dwa import step_unicycle
+from ..convoi.geometry import F32, field_lookup, robot_to_world
 from .llu import LLUBuffer, TextDB
-from .olivia_data import ACTIONS, PREV_STEPS, caption_scene, expert_action, observe
-from .runner import GOAL_TOLERANCE, EpisodeResult, make_world
+from .captions import ACTIONS, caption_scene
+from .features import expert_action, observe
+from .lidar import PREV_STEPS
+from ..convoi.runner import GOAL_TOLERANCE, EpisodeResult, make_world
 from .sc_clip import SCCLIP, SCCLIPConfig, normalize
-from .scenarios import ROBOT_RADIUS, Scenario
+from ..convoi.scenarios import ROBOT_RADIUS, Scenario
 from .tpn import TPN, TPNConfig
 from .tsm import TSM, TSMConfig
 
@@ -136,11 +138,11 @@ class OliviaNav:
 def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | None = None,
                        buffer: LLUBuffer | None = None, buffer_every: int = 5,
                        sf: pedsim.SocialForceConfig | None = None) -> EpisodeResult:
-    """Drive OLiVia-Nav through ``scn`` (same loop as :func:`splatsearch.social.runner.run_episode`:
+    """Drive OLiVia-Nav through ``scn`` (same loop as :func:`splatsearch.social.convoi.runner.run_episode`:
     move the robot, refusing moves into walls, then step the people, who see it). With
     ``buffer``, every ``buffer_every``-th view is stored for the LLU with its privileged scene,
     for a template captioner; the scene's action is the expert's from that state
-    (:func:`~splatsearch.social.olivia_data.expert_action`). ``plan_ms`` is the mean wall-clock
+    (:func:`~splatsearch.social.olivia.features.expert_action`). ``plan_ms`` is the mean wall-clock
     per planning cycle."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)

@@ -7,7 +7,7 @@ caption's navigation action describes (:func:`best_index`).
 
 For the selection to depend on E_T, D_TSM also holds counterfactual rows (the same plans with the
 caption rewritten to another action that one of them performs, and k* that plan; see
-:func:`splatsearch.social.olivia_train.tsm_rows`): with the real captions alone, the expert's
+:func:`splatsearch.social.olivia.train.tsm_rows`): with the real captions alone, the expert's
 action is nearly always that of the plan closest to the expert, which the plans reveal by
 themselves, and a TSM trained on them scores the plans the same with or without E_T.
 """
@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .olivia_data import HORIZON, action_of
+from .features import HORIZON, action_of
 
 F32 = jnp.float32
 

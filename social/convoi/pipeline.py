@@ -1,6 +1,6 @@
 """CoNVOI (Sathyamoorthy et al. 2024): context -> behaviour prompt -> marked image -> VLM -> reference
 path, with extrapolation and re-querying (IV-A..IV-E). The DWA side (eq 5, 6) lives in
-:mod:`.costs` / :mod:`.dwa`; :func:`splatsearch.social.runner.run_episode` ties them together.
+:mod:`.costs` / :mod:`.dwa`; :func:`splatsearch.social.convoi.runner.run_episode` ties them together.
 
 Every control step :meth:`CoNVOI.update`:
 
@@ -126,7 +126,7 @@ class CoNVOI:
     """The CoNVOI reference-path provider (see the module doc).
 
     Args:
-        vlm: the large VLM (:class:`~splatsearch.social.vlm.VLM`).
+        vlm: the large VLM (:class:`~splatsearch.social.convoi.vlm.VLM`).
         classifier: the context classifier (default :class:`RuleContextClassifier`).
         cfg: :class:`CoNVOIConfig`.
     """

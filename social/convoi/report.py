@@ -70,7 +70,7 @@ def evaluate(scenarios, seeds, methods=("dwa", "convoi"), *, vlm=None, convoi_cf
     (the expert's rows included). ``vlm`` defaults to the rule-based one. ``observer_factory(scn,
     method, convoi)`` may return a per-step observer (the live viewer). ``progress(text)`` is called
     before each episode."""
-    from .convoi import CoNVOI, CoNVOIConfig
+    from .pipeline import CoNVOI, CoNVOIConfig
     from .vlm import RuleBasedVLM
 
     vlm = vlm if vlm is not None else RuleBasedVLM()

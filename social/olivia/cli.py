@@ -33,7 +33,7 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def _scenarios(text: str) -> tuple[str, ...]:
-    from .scenarios import SCENARIOS
+    from ..convoi.scenarios import SCENARIOS
 
     names = tuple(s.strip() for s in text.split(",") if s.strip())
     bad = [n for n in names if n not in SCENARIOS]
@@ -44,7 +44,7 @@ def _scenarios(text: str) -> tuple[str, ...]:
 
 def register_olivia(social_subparsers) -> None:
     """Add the ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
-    from .scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS
+    from ..convoi.scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS
 
     p = social_subparsers.add_parser("train", help="train OLiVia-Nav (SC-CLIP, TPN, TSM) on expert episodes")
     p.add_argument("--out", default="runs/olivia", help="output directory (checkpoints, data cache, summary)")
@@ -91,7 +91,7 @@ def _progress(disabled: bool):
 def cmd_train(args) -> int:
     from rich.console import Console
 
-    from .olivia_train import TrainConfig, train_olivia
+    from .train import TrainConfig, train_olivia
 
     for name in ("clip_epochs", "tpn_epochs", "tsm_epochs", "patience", "every"):
         if getattr(args, name) < 1:
@@ -113,7 +113,7 @@ def cmd_eval(args) -> int:
     from rich.console import Console
 
     from .llu import LLUConfig
-    from .olivia_train import format_table_one, format_table_two, load_planner, table_one, table_two
+    from .train import format_table_one, format_table_two, load_planner, table_one, table_two
 
     console = Console()
     planner = load_planner(args.checkpoint)

@@ -1,0 +1,171 @@
+"""OLiVia-Nav's training data (thesis 3.3): samples built from the social module's expert
+episodes ("teleoperated" references).
+
+One pass over expert episodes gives the three datasets of the thesis: D_SC (view, long caption,
+short caption), D_TPN (view, LiDAR, goal, expert future in the frame of the current pose) and
+D_TSM (the action index of each caption; k* is computed later from the TPN's predictions).
+Augmentation: each expert state is also used with the robot displaced sideways and turned (the
+labels blend from the displaced pose back onto the expert's future), which teaches the planner to
+recover when it drifts off the expert's states in closed loop.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..convoi.geometry import F32
+from .captions import Captioner, TemplateCaptioner, caption_scene
+from .features import FUTURE_STRIDE, GOAL_DIM, HORIZON, action_of, extend_to_goal, future_in_frame, observe
+from .lidar import N_POINTS, PREV_STEPS
+from .render import IMG_H, IMG_W, to_uint8
+
+
+@dataclass
+class Samples:
+    """A dataset of N samples (host arrays).
+
+    image: (N, IMG_H, IMG_W, 3) uint8; points: (N, N_POINTS, 4) float32 robot frame (x, y, z,
+    age); points_valid: (N, N_POINTS) bool; goal: (N, GOAL_DIM); future: (N, HORIZON, 3) expert
+    poses (robot frame); action: (N,) int; long, short: lists of N captions; scenario: (N,)
+    int index into :data:`~splatsearch.social.convoi.scenarios.SCENARIOS`; seed: (N,); t: (N,) step."""
+
+    image: np.ndarray
+    points: np.ndarray
+    points_valid: np.ndarray
+    goal: np.ndarray
+    future: np.ndarray
+    action: np.ndarray
+    long: list
+    short: list
+    scenario: np.ndarray
+    seed: np.ndarray
+    t: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.action)
+
+    def subset(self, idx) -> "Samples":
+        idx = np.asarray(idx)
+        return Samples(self.image[idx], self.points[idx], self.points_valid[idx], self.goal[idx], self.future[idx],
+                       self.action[idx], [self.long[i] for i in idx], [self.short[i] for i in idx],
+                       self.scenario[idx], self.seed[idx], self.t[idx])
+
+    @staticmethod
+    def concat(parts: Sequence["Samples"]) -> "Samples":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            raise ValueError("no samples to concatenate")
+        cat = lambda k: np.concatenate([getattr(p, k) for p in parts])  # noqa: E731
+        return Samples(cat("image"), cat("points"), cat("points_valid"), cat("goal"), cat("future"), cat("action"),
+                       sum((p.long for p in parts), []), sum((p.short for p in parts), []), cat("scenario"),
+                       cat("seed"), cat("t"))
+
+    def save(self, path: str) -> None:
+        """Write the samples as npz (atomically)."""
+        d = os.path.dirname(os.path.abspath(path))
+        os.makedirs(d, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".samples-", suffix=".npz", dir=d)
+        os.close(fd)
+        try:
+            np.savez(tmp, image=self.image, points=self.points, points_valid=self.points_valid, goal=self.goal,
+                     future=self.future, action=self.action, long=np.asarray(self.long, dtype=np.str_),
+                     short=np.asarray(self.short, dtype=np.str_), scenario=self.scenario, seed=self.seed, t=self.t)
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+    @staticmethod
+    def load(path: str) -> "Samples":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return Samples(z["image"], z["points"], z["points_valid"], z["goal"], z["future"], z["action"],
+                               [str(s) for s in z["long"]], [str(s) for s in z["short"]], z["scenario"], z["seed"],
+                               z["t"])
+        except (OSError, KeyError, ValueError) as e:
+            raise ValueError(f"cannot read the sample file {path!r}: {e}") from e
+
+
+def samples_from_episode(scn, res, *, every: int = 4, augment: int = 1, rng: np.random.Generator | None = None,
+                         captioner: Captioner | None = None, max_lateral: float = 0.35,
+                         max_yaw: float = 0.35) -> Samples:
+    """Samples along one expert episode ``res`` (:class:`~splatsearch.social.convoi.runner.EpisodeResult`)
+    of scenario ``scn``: every ``every`` steps, the expert state plus ``augment`` displaced
+    copies (lateral shift up to ``max_lateral`` m, yaw up to ``max_yaw`` rad; refused if the
+    displaced robot would be within 0.3 m of a wall). When the expert reached the goal, the
+    labels continue to the goal itself (:func:`extend_to_goal`)."""
+    from ..convoi.scenarios import SCENARIOS
+
+    rng = rng if rng is not None else np.random.default_rng(scn.seed)
+    captioner = captioner if captioner is not None else TemplateCaptioner()
+    poses = np.asarray(res.robot, np.float64)
+    people = np.asarray(res.people, np.float32)
+    vel = np.diff(people, axis=0, prepend=people[:1]) / res.dt
+    field = scn.field()
+    path = scn.global_path()
+    recs = []
+    T = len(poses) - 1
+    # labels only: the states sampled stay those of the episode (people are known up to T)
+    label_poses = extend_to_goal(poses, scn.goal) if getattr(res, "reached", False) else poses
+    for t in range(0, max(T - FUTURE_STRIDE, 1), every):
+        for a in range(1 + augment):
+            pose = poses[t].copy()
+            off, dyaw = np.zeros(2), 0.0
+            if a > 0:
+                lat = rng.uniform(-max_lateral, max_lateral)
+                dyaw = rng.uniform(-max_yaw, max_yaw)
+                off = lat * np.array([-np.sin(pose[2]), np.cos(pose[2])])
+                cand = pose + np.r_[off, dyaw]
+                if float(field_lookup(field, jnp.asarray(cand[:2], F32))) < 0.3:
+                    continue
+                pose = cand
+            tp = max(t - PREV_STEPS, 0)
+            prev = poses[tp] + np.r_[off, dyaw]
+            obs = observe(scn, pose, people[t], prev, people[tp], path)
+            fut = future_in_frame(label_poses, t, pose, off if a else None, dyaw)
+            act = action_of(fut)
+            cs = caption_scene(scn, pose, people[t], vel[t], act)
+            if isinstance(captioner, TemplateCaptioner):
+                cap = captioner.caption(None, cs, variant=int(rng.integers(2)))
+            else:
+                cap = captioner.caption(obs.image, cs)
+                if not cap.ok:
+                    cap = TemplateCaptioner().caption(None, cs)
+            recs.append((to_uint8(obs.image), obs.points, obs.points_valid, obs.goal, fut,
+                         act if cap.action < 0 else cap.action, cap.long, cap.short, t))
+    if not recs:
+        raise ValueError(f"episode of {scn.name} seed {scn.seed} gave no samples")
+    n = len(recs)
+    col = lambda i: np.stack([r[i] for r in recs])  # noqa: E731
+    return Samples(col(0), col(1).astype(np.float32), col(2), col(3), col(4), np.asarray([r[5] for r in recs], np.int32),
+                   [r[6] for r in recs], [r[7] for r in recs], np.full(n, SCENARIOS.index(scn.name), np.int32),
+                   np.full(n, scn.seed, np.int32), np.asarray([r[8] for r in recs], np.int32))
+
+
+def build_dataset(scenarios: Sequence[str], seeds: Sequence[int], *, every: int = 4, augment: int = 1,
+                  progress=None, expert_cache: dict | None = None) -> Samples:
+    """Samples from the expert episodes of every (scenario, seed). ``progress(i, n, label)``
+    is called after each episode; ``expert_cache`` (dict) keeps the episodes for reuse."""
+    from ..convoi.runner import run_episode
+    from ..convoi.scenarios import make_scenario
+
+    parts = []
+    jobs = [(s, int(k)) for s in scenarios for k in seeds]
+    for i, (name, seed) in enumerate(jobs):
+        scn = make_scenario(name, seed)
+        key = (name, seed)
+        res = expert_cache.get(key) if expert_cache is not None else None
+        if res is None:
+            res = run_episode(scn, "expert")
+            if expert_cache is not None:
+                expert_cache[key] = res
+        parts.append(samples_from_episode(scn, res, every=every, augment=augment,
+                                          rng=np.random.default_rng([seed, 7, len(name)])))
+        if progress is not None:
+            progress(i + 1, len(jobs), f"{name}/{seed}")
+    return Samples.concat(parts)
