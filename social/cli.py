@@ -14,7 +14,7 @@ import argparse
 import json
 import os
 
-from .convoi.scenarios import SCENARIOS
+from .convoi.scenario_names import SCENARIOS
 
 
 def _add_run_args(p: argparse.ArgumentParser) -> None:
@@ -23,14 +23,14 @@ def _add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed-offset", type=int, default=0, help="first seed (>= 0)")
     p.add_argument("--methods", default="dwa,convoi", help="comma list of dwa, convoi (the expert always runs)")
     p.add_argument("--vlm", choices=["rules", "openai", "replay"], default="rules",
-                   help="CoNVOI's large VLM: offline rules (default), an OpenAI-compatible endpoint, or a recording")
+                   help="CoNVOI's large VLM: offline rules, an OpenAI-compatible endpoint, or a recording")
     p.add_argument("--vlm-url", default=None, help="base URL of the OpenAI-compatible endpoint (…/v1)")
     p.add_argument("--vlm-model", default="gpt-4o", help="model name for --vlm openai")
     p.add_argument("--vlm-record", default=None,
                    help="JSON file: record the VLM's answers (with --vlm openai/rules) or replay them (--vlm replay)")
     p.add_argument("--latency", type=float, default=0.0, help="simulated VLM latency in seconds (>= 0)")
     p.add_argument("--viewer", action="store_true", help="show the episodes live in viser (127.0.0.1:PORT)")
-    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--port", type=int, default=8080, help="viewer TCP port on 127.0.0.1")
     p.add_argument("--json", default=None, help="also write every episode's metrics to this JSON file")
 
 

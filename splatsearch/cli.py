@@ -230,12 +230,39 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps descriptions as written and ends every option's help with its default, unless the
+    help already names it ("default: ..."); on/off flags read "(default: off)"."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if not action.option_strings or "default" in text or action.default is argparse.SUPPRESS:
+            return text
+        if isinstance(action, argparse._StoreTrueAction):
+            return f"{text} (default: off)"
+        if action.default is None:
+            return f"{text} (default: none)"
+        return f"{text} (default: %(default)s)"
+
+
+def _use_formatter(parser: argparse.ArgumentParser) -> None:
+    """Give ``parser`` and all its sub-command parsers :class:`HelpFormatter`."""
+    parser.formatter_class = HelpFormatter
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for sp in a.choices.values():
+                _use_formatter(sp)
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """The ``splatsearch`` parser. Building it imports neither JAX nor Warp: every command's heavy
+    modules are imported inside its handler."""
     p = argparse.ArgumentParser(prog="splatsearch", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
     b = sub.add_parser("bench", help="time the rasterizer on the benchmark scenes")
-    b.add_argument("--scene", choices=["profile", "small", "all"], default="all")
+    b.add_argument("--scene", choices=["profile", "small", "all"], default="all",
+                   help="benchmark scene: profile (112k Gaussians, 648x420), small (10k, 320x240) or all")
     b.add_argument("--repeats", type=int, default=5, help="timed repetitions after warm-up (>= 1)")
     b.set_defaults(func=_cmd_bench)
 
@@ -248,48 +275,49 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--seed", type=int, default=0, help="house seed (>= 0)")
         c.add_argument("--rooms", type=int, default=None, help="number of rooms, 3..8 (default: from the seed)")
         c.add_argument("--identical-furniture", action="store_true", help="one model per furniture class")
-        c.add_argument("--out", default=default_out)
+        c.add_argument("--out", default=default_out, help="output path")
         if name == "episodes":
-            c.add_argument("--split", choices=["val", "val-hard"], default="val")
-            c.add_argument("--n", type=int, default=10)
-            c.add_argument("--episode-seed", type=int, default=0)
+            c.add_argument("--split", choices=["val", "val-hard"], default="val",
+                           help="val: goal image from a navigable viewpoint; val-hard: from a sphere around the object")
+            c.add_argument("--n", type=int, default=10, help="number of episodes")
+            c.add_argument("--episode-seed", type=int, default=0, help="seed of the episode sampler (>= 0)")
         c.set_defaults(func=_cmd_sim)
 
     m = sub.add_parser("map", help="build a Gaussian map from RGB-D frames and report PSNR / SSIM / depth L1")
     m.add_argument("--seed", type=int, default=0, help="simulator house seed (when --tum is not given)")
     m.add_argument("--tum", default=None, help="a TUM RGB-D folder (rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt)")
-    m.add_argument("--frames", type=int, default=100)
-    m.add_argument("--width", type=int, default=320)
-    m.add_argument("--height", type=int, default=240)
+    m.add_argument("--frames", type=int, default=100, help="frames to map (at most)")
+    m.add_argument("--width", type=int, default=320, help="simulator image width in pixels (ignored with --tum)")
+    m.add_argument("--height", type=int, default=240, help="simulator image height in pixels (ignored with --tum)")
     m.add_argument("--iters", type=int, default=15, help="optimisation steps per frame")
     m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel")
-    m.add_argument("--isotropic", action="store_true")
+    m.add_argument("--isotropic", action="store_true", help="isotropic Gaussians (one scale each, as SplaTAM)")
     m.add_argument("--holdout-every", type=int, default=8, help="hold out one frame in N for evaluation (0: none)")
-    m.add_argument("--out", default="runs/map")
+    m.add_argument("--out", default="runs/map", help="output directory (map.ply, map.npz, summary.json)")
     m.set_defaults(func=_cmd_map)
 
     from splatsearch.agent import VARIANTS
 
     d = sub.add_parser("demo", help="a SplatSearch episode with the live viewer at http://127.0.0.1:PORT")
     d.add_argument("--seed", type=int, default=0, help="house seed (>= 0)")
-    d.add_argument("--split", choices=["val", "val-hard"], default="val")
+    d.add_argument("--split", choices=["val", "val-hard"], default="val", help="episode split")
     d.add_argument("--episode", type=int, default=0, help="episode index in the house")
-    d.add_argument("--port", type=int, default=8080)
+    d.add_argument("--port", type=int, default=8080, help="viewer TCP port on 127.0.0.1")
     d.add_argument("--no-viewer", action="store_true", help="headless: no viser server")
     d.add_argument("--exit-when-done", action="store_true", help="close the viewer when the episode ends")
-    d.add_argument("--variant", choices=VARIANTS, default="splatsearch")
+    d.add_argument("--variant", choices=VARIANTS, default="splatsearch", help="the full system or one of its ablations")
     d.add_argument("--max-steps", type=int, default=None, help="step cap (default: the episode's, 1000)")
-    d.add_argument("--out", default="runs/demo")
+    d.add_argument("--out", default="runs/demo", help="output directory (map.ply, trajectory and summary)")
     d.set_defaults(func=_cmd_demo)
 
     e = sub.add_parser("eval", help="SR / SPL of SplatSearch and its ablations")
-    e.add_argument("--split", choices=["val", "val-hard"], default="val-hard")
-    e.add_argument("--episodes", type=int, default=50)
+    e.add_argument("--split", choices=["val", "val-hard"], default="val-hard", help="episode split")
+    e.add_argument("--episodes", type=int, default=50, help="number of episodes (5 per house)")
     e.add_argument("--seed", type=int, default=0, help="evaluation seed (selects the houses)")
     e.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     e.add_argument("--variants", default=None,
                    help=f"comma-separated subset of {','.join(VARIANTS)} (default: all five)")
-    e.add_argument("--max-steps", type=int, default=None)
+    e.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default: the episode's, 1000)")
     e.add_argument("--resume", action="store_true",
                    help="keep the finished episodes in OUT/results.json and run only the missing ones")
     e.add_argument("--identical-furniture", action="store_true",
@@ -298,25 +326,26 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--no-colour-cue", "--no-appearance", dest="no_colour_cue", action="store_true",
                    help="every variant identifies by feature matches alone (as the thesis), without the colour "
                         "cue, which cannot tell identical furniture apart (default: off)")
-    e.add_argument("--out", default="runs/eval")
+    e.add_argument("--out", default="runs/eval", help="output directory (results.json, summary.json, summary.md)")
     e.set_defaults(func=_cmd_eval)
 
     v = sub.add_parser("view", help="open a saved map in the viewer")
     v.add_argument("map", help="a .ply (INRIA layout) or .npz map")
-    v.add_argument("--port", type=int, default=8080)
-    v.add_argument("--max-splats", type=int, default=200_000)
+    v.add_argument("--port", type=int, default=8080, help="viewer TCP port on 127.0.0.1")
+    v.add_argument("--max-splats", type=int, default=200_000, help="Gaussians sent to the browser at most")
     v.add_argument("--max-z", type=float, default=None, help="hide Gaussians above this height (m), e.g. ceilings")
     v.set_defaults(func=_cmd_view)
 
     x = sub.add_parser("export", help="convert a map between .npz and .ply")
-    x.add_argument("src")
-    x.add_argument("dst")
+    x.add_argument("src", help="the map to read (.ply or .npz)")
+    x.add_argument("dst", help="the file to write (.ply or .npz)")
     x.set_defaults(func=_cmd_export)
 
     from splatsearch.social.cli import register as register_social
     from splatsearch.social.olivia.cli import register_olivia
 
     register_social(sub, extra=[register_olivia])
+    _use_formatter(p)
     return p
 
 

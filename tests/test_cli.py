@@ -58,3 +58,39 @@ def test_demo_headless_writes_run_folder_and_export_round_trips(tmp_path):
     assert io.load_ply(str(tmp_path / "back.ply")).n_active == summary["gaussians"]
     assert main(["export", str(ply), str(tmp_path / "m.txt")]) == 2
     assert main(["demo", "--no-viewer", "--seed", "-1", "--out", str(out)]) == 2
+
+
+def _options(parser, path=()):
+    import argparse
+
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for name, sub in a.choices.items():
+                yield from _options(sub, (*path, name))
+        elif not isinstance(a, argparse._HelpAction):
+            yield " ".join(path), a
+
+
+def test_every_flag_has_help_with_its_default():
+    from splatsearch.cli import build_parser
+
+    parser = build_parser()
+    opts = list(_options(parser))
+    assert len(opts) > 80 and {p for p, _ in opts} >= {"map", "eval", "demo", "social train", "social eval"}
+    bare = [(p, a.option_strings or a.dest) for p, a in opts if not (a.help or "").strip()]
+    assert bare == []
+    formatter = parser._subparsers._group_actions[0].choices["map"]._get_formatter()
+    for path, a in opts:
+        if a.option_strings:
+            text = formatter._get_help_string(a)
+            assert "default" in text, (path, a.option_strings, text)
+
+
+def test_building_the_parser_imports_neither_jax_nor_warp():
+    import subprocess
+    import sys
+
+    code = ("import sys, splatsearch.cli as c; c.build_parser(); "
+            "print(sorted(m for m in ('jax', 'warp', 'flax', 'cv2') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -33,14 +33,8 @@ from .geometry import (
     pad_capsules,
 )
 from .pedsim import PedState, make_state
+from .scenario_names import SCENARIOS, TABLE_ONE_SEEDS, THESIS_SCENARIOS
 
-SCENARIOS = ("hallway", "blind_corner", "static_groups", "dynamic_groups", "doorway", "crossing")
-# OLiVia-Nav's four (thesis Table I order)
-THESIS_SCENARIOS = SCENARIOS[:4]
-#: the held-out seeds of OLiVia-Nav's Table I (training uses seeds below 100). Ten, not five: per
-#: seed one method's Hausdorff distance spans 0.03-0.48 m in dynamic_groups, and on five seeds
-#: OLiVia-Nav and DWA differed there by 1 mm, which is noise.
-TABLE_ONE_SEEDS = tuple(range(1000, 1010))
 GRID = GridSpec((-2.0, -8.0), 0.05, (320, 320))
 MAX_PEOPLE = 12
 MAX_CAPSULES = 16

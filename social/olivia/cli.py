@@ -33,7 +33,7 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def _scenarios(text: str) -> tuple[str, ...]:
-    from ..convoi.scenarios import SCENARIOS
+    from ..convoi.scenario_names import SCENARIOS
 
     names = tuple(s.strip() for s in text.split(",") if s.strip())
     bad = [n for n in names if n not in SCENARIOS]
@@ -44,40 +44,44 @@ def _scenarios(text: str) -> tuple[str, ...]:
 
 def register_olivia(social_subparsers) -> None:
     """Add the ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
-    from ..convoi.scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS
+    from ..convoi.scenario_names import TABLE_ONE_SEEDS, THESIS_SCENARIOS
 
     p = social_subparsers.add_parser("train", help="train OLiVia-Nav (SC-CLIP, TPN, TSM) on expert episodes")
     p.add_argument("--out", default="runs/olivia", help="output directory (checkpoints, data cache, summary)")
-    p.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS)
-    p.add_argument("--train-seeds", type=_ints, default=tuple(range(6)))
-    p.add_argument("--val-seeds", type=_ints, default=(50,))
+    p.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS,
+                   help=f"comma list of scenarios (default: {','.join(THESIS_SCENARIOS)})")
+    p.add_argument("--train-seeds", type=_ints, default=tuple(range(6)), help="training seeds, e.g. 0-5 (default: 0-5)")
+    p.add_argument("--val-seeds", type=_ints, default=(50,), help="validation seeds for early stopping (default: 50)")
     # literals (not TrainConfig's, whose module pulls in JAX) kept equal to TrainConfig by a test
-    p.add_argument("--clip-epochs", type=int, default=16)
-    p.add_argument("--tpn-epochs", type=int, default=15)
-    p.add_argument("--tsm-epochs", type=int, default=40)
-    p.add_argument("--patience", type=int, default=5)
+    p.add_argument("--clip-epochs", type=int, default=16, help="SC-CLIP epochs at most")
+    p.add_argument("--tpn-epochs", type=int, default=15, help="TPN epochs at most")
+    p.add_argument("--tsm-epochs", type=int, default=40, help="TSM epochs at most")
+    p.add_argument("--patience", type=int, default=5, help="epochs without a better validation loss before stopping")
     p.add_argument("--every", type=int, default=5, help="sample an expert state every N sim steps")
     p.add_argument("--augment", type=int, default=1, help="displaced copies per expert state")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--seed", type=int, default=0, help="training seed (initialisation, shuffling)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_train)
 
     e = social_subparsers.add_parser("eval", help="OLiVia-Nav vs DWA vs CoNVOI+DWA (Table I) and ablations with LLU (Table II)")
-    e.add_argument("--checkpoint", default="runs/olivia/olivia.npz")
+    e.add_argument("--checkpoint", default="runs/olivia/olivia.npz", help="checkpoint written by social train")
     e.add_argument("--out", default=None, help="where to write eval.json and eval.md (default: next to the checkpoint)")
-    e.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS)
+    e.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS,
+                   help=f"comma list of scenarios (default: {','.join(THESIS_SCENARIOS)})")
     e.add_argument("--seeds", type=_ints, default=TABLE_ONE_SEEDS,
-                   help="held-out seeds (never trained on)")
+                   help=f"held-out seeds, never trained on (default: {TABLE_ONE_SEEDS[0]}-{TABLE_ONE_SEEDS[-1]})")
     e.add_argument("--baselines", default="dwa,convoi", help="comma list of dwa, convoi (or empty)")
     e.add_argument("--ablations", action="store_true", help="also the ablations in Table I")
-    e.add_argument("--llu-scenario", type=_scenarios, default=("doorway",), help="held-out variant for Table II")
+    e.add_argument("--llu-scenario", type=_scenarios, default=("doorway",),
+                   help="held-out scenario for Table II (default: doorway)")
     e.add_argument("--llu-adapt-seeds", type=_ints, default=(500, 501, 502, 503),
-                   help="driven in order until the buffer holds --llu-size images")
-    e.add_argument("--llu-test-seeds", type=_ints, default=(1000, 1001, 1002))
-    e.add_argument("--llu-size", type=int, default=50, help="|B|")
+                   help="seeds driven in order until the buffer holds --llu-size images (default: 500-503)")
+    e.add_argument("--llu-test-seeds", type=_ints, default=(1000, 1001, 1002),
+                   help="seeds Table II is measured on (default: 1000-1002)")
+    e.add_argument("--llu-size", type=int, default=50, help="LLU buffer size |B| in images")
     e.add_argument("--llu-mu", type=float, default=0.05, help="eq 4 temperature")
-    e.add_argument("--no-table2", action="store_true")
-    e.add_argument("--no-progress", action="store_true")
+    e.add_argument("--no-table2", action="store_true", help="skip Table II (the LLU update)")
+    e.add_argument("--no-progress", action="store_true", help="no progress bars")
     e.set_defaults(func=cmd_eval)
 
 

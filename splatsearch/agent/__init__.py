@@ -6,31 +6,35 @@
 Modules: ``config`` (AgentConfig, VARIANTS, Strategy, resolve_variant), ``perception``
 (Perception: online map, detection, lifting, object DB, colour cue), ``verification``
 (Verifier: crop matching, NVSM, the goal decision), ``decision`` (SearchPolicy: target choice,
-fallback, the action), ``core`` (SplatSearchAgent, StepInfo).
+fallback, the action), ``core`` (SplatSearchAgent, StepInfo). ``VARIANTS`` is defined without
+heavy imports (``variants``); the other names load on first use.
 """
 
-from .config import VARIANTS, AgentConfig, Strategy, resolve_variant
-from .core import MIN_GOAL_SIDE, SplatSearchAgent, StepInfo
-from .decision import FALLBACK_COLOUR_MARGIN, FALLBACK_MATCH_MARGIN, SearchPolicy
-from .perception import LIFT_TOLERANCE, NewView, Perception, crop_around
-from .verification import MATCH_CROP_MARGIN, NovelViews, Verifier
+from __future__ import annotations
 
-__all__ = [
-    "FALLBACK_COLOUR_MARGIN",
-    "FALLBACK_MATCH_MARGIN",
-    "LIFT_TOLERANCE",
-    "MATCH_CROP_MARGIN",
-    "MIN_GOAL_SIDE",
-    "VARIANTS",
-    "AgentConfig",
-    "NewView",
-    "NovelViews",
-    "Perception",
-    "SearchPolicy",
-    "SplatSearchAgent",
-    "StepInfo",
-    "Strategy",
-    "Verifier",
-    "crop_around",
-    "resolve_variant",
-]
+import importlib
+
+from .variants import VARIANTS
+
+#: public name -> the submodule that defines it
+_EXPORTS = {
+    "AgentConfig": "config", "Strategy": "config", "resolve_variant": "config",
+    "MIN_GOAL_SIDE": "core", "SplatSearchAgent": "core", "StepInfo": "core",
+    "FALLBACK_COLOUR_MARGIN": "decision", "FALLBACK_MATCH_MARGIN": "decision", "SearchPolicy": "decision",
+    "LIFT_TOLERANCE": "perception", "NewView": "perception", "Perception": "perception", "crop_around": "perception",
+    "MATCH_CROP_MARGIN": "verification", "NovelViews": "verification", "Verifier": "verification",
+}
+__all__ = sorted([*_EXPORTS, "VARIANTS"])
+
+
+def __getattr__(name: str):
+    mod = _EXPORTS.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

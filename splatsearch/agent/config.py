@@ -12,8 +12,7 @@ from dataclasses import dataclass, field
 from splatsearch.search.local_map import LocalMapConfig
 from splatsearch.search.matching import DEFAULT_TAU_M, RENDER_TAU_M
 
-#: the thesis' Table IV rows: the full system and its four ablations (the evaluation runs all five)
-VARIANTS = ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav")
+from .variants import VARIANTS
 
 
 @dataclass(frozen=True)
