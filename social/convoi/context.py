@@ -229,8 +229,8 @@ class CLIPContextClassifier:
     def _load(self):
         if self._model is not None:
             return
-        for k in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"):
-            os.environ.setdefault(k, "1")
+        # weights come from model_path only (pretrained= a file, local_files_only=True): nothing is
+        # downloaded, and the user's environment is left as it is
         if self.backend == "open_clip":
             import open_clip
 
