@@ -102,6 +102,8 @@ class LocalMap:
         return np.where(ok, self.clearance[r, c], 0.0)
 
 
+#: module-level cache: (n, cell) -> (GridSpec, (n, n, 2) cell centres in the robot frame). The
+#: grids depend only on their size, so they are built once per process; a few entries at most.
 _CELL_CACHE: dict = {}
 
 

@@ -109,8 +109,10 @@ class SIFTMatcher:
         contrast_threshold: SIFT's contrast threshold (OpenCV's default 0.04 suits camera
             images; :data:`RENDER_CONTRAST_THRESHOLD` suits the softer renders of a Gaussian map).
 
-    The goal's features are cached (keyed by a hash of the image), since the same goal is
-    matched against every novel view of every object.
+    The goal's features are cached per matcher instance (keyed by a hash of the image, the 8
+    latest goals), since the same goal is matched against every novel view of every object.
+    Each count seeds OpenCV's global RNG (``cv2.setRNGSeed(0)``) before RANSAC so that counts are
+    reproducible; code that draws from OpenCV's RNG itself sees that stream reset.
     """
 
     def __init__(self, ratio: float = 0.75, ransac_thresh: float = 3.0, min_matches: int = 8,
