@@ -99,9 +99,9 @@ _EXPORTS = {
     "PLANNERS": "convoi.runner",
     "run_episode": "convoi.runner",
     # convoi.scenarios
-    "SCENARIOS": "convoi.scenarios",
+    "SCENARIOS": "convoi.scenario_names",
     "Scenario": "convoi.scenarios",
-    "THESIS_SCENARIOS": "convoi.scenarios",
+    "THESIS_SCENARIOS": "convoi.scenario_names",
     "make_scenario": "convoi.scenarios",
     # convoi.vlm
     "MarkerScene": "convoi.vlm",

@@ -33,7 +33,7 @@ from .geometry import (
     pad_capsules,
 )
 from .pedsim import PedState, make_state
-from .scenario_names import SCENARIOS, TABLE_ONE_SEEDS, THESIS_SCENARIOS
+from .scenario_names import SCENARIOS, TABLE_ONE_SEEDS, THESIS_SCENARIOS  # noqa: F401 - re-exported
 
 GRID = GridSpec((-2.0, -8.0), 0.05, (320, 320))
 MAX_PEOPLE = 12

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..convoi.geometry import F32, DistanceField
+from ..convoi.geometry import F32, DistanceField, world_to_robot
 from .render import COLOURS, HFOV, MAX_RANGE, _cast, person_colour
 
 

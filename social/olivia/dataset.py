@@ -13,16 +13,17 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
 
-from ..convoi.geometry import F32
+from ..convoi.geometry import F32, field_lookup
 from .captions import Captioner, TemplateCaptioner, caption_scene
-from .features import FUTURE_STRIDE, GOAL_DIM, HORIZON, action_of, extend_to_goal, future_in_frame, observe
-from .lidar import N_POINTS, PREV_STEPS
-from .render import IMG_H, IMG_W, to_uint8
+from .features import FUTURE_STRIDE, action_of, extend_to_goal, future_in_frame, observe
+from .lidar import PREV_STEPS
+from .render import to_uint8
 
 
 @dataclass

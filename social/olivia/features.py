@@ -14,10 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from splatsearch.nav.grid import wrap_angle
-from ..convoi.geometry import F32
+from ..convoi.geometry import F32, world_to_robot
 from .captions import ACTIONS
-from .lidar import N_POINTS, PREV_STEPS, lidar_points
-from .render import IMG_H, IMG_W, palette_of, render_view
+from .lidar import lidar_points
+from .render import palette_of, render_view
 
 if TYPE_CHECKING:
     from ..convoi.pedsim import PedState

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..convoi.geometry import F32, DistanceField
+from ..convoi.geometry import F32, DistanceField, world_to_robot
 from .render import MAX_RANGE, PERSON_HEIGHT, WALL_HEIGHT, _cast
 
 

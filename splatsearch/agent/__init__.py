@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import importlib
 
-from .variants import VARIANTS
+from .variants import VARIANTS  # noqa: F401 - light, read by the CLI parser
 
 #: public name -> the submodule that defines it
 _EXPORTS = {
