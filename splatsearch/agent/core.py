@@ -59,6 +59,11 @@ class StepInfo:
 class SplatSearchAgent:
     """Instance-image-goal search in an unknown house.
 
+    State lives in the three rooms: :attr:`perception` (map, object DB, observations),
+    :attr:`verifier` (match counts, NVSM runs), :attr:`policy` (explored, given-up entries,
+    targets); :attr:`explorer` holds the 2-D maps. The properties below read them for the viewer
+    and the episode runner.
+
     Args:
         K, width, height: the robot camera.
         goal_rgb: (H, W, 3) goal image, float in [0, 1] or uint8; its size need not be the robot
@@ -67,8 +72,9 @@ class SplatSearchAgent:
         start_pose: (x, y, yaw) where the episode starts (centres the grid maps).
         config: :class:`AgentConfig`; detector / matcher / inpainter / encoder / colour_model:
             plug-ins (offline defaults: simulator masks, SIFT + RANSAC, OpenCV Telea,
-            colour+texture, masked hue-saturation histogram for the colour cue). ``matcher`` scores the camera
-            images around detections; ``nvsm_matcher`` scores the rendered novel views (default:
+            colour+texture, masked hue-saturation histogram for the colour cue). ``matcher``
+            scores the camera crops around detections; ``nvsm_matcher`` scores the rendered novel
+            views (default:
             ``matcher`` when one is given, else SIFT with
             :data:`~splatsearch.search.matching.RENDER_CONTRAST_THRESHOLD`, because renders of a
             Gaussian map are softer than camera images).
