@@ -280,11 +280,12 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
         if composite_variant(device) == "tile":
             fwd, _ = composite_tile_kernels(C)
             done = st.ws.get("done", width * height, wp.int32)
+            live = st.ws.get("live", tiles_x * tiles_y * tile, wp.vec2i)
 
             def launch(_w, t0, t1):
                 wp.launch(fwd, dim=t1 - t0,
                           inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
-                                  tiles_x, t0, done],
+                                  tiles_x, t0, done, live],
                           outputs=[out_color, out_depth, out_T, out_last], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
