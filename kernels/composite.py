@@ -95,6 +95,8 @@ def composite_top_id(
     out_weight[pix] = best_w
 
 
+# Module-level cache: the kernels of each channel count C are generated (and their Warp modules
+# compiled) once per process.
 @functools.cache
 def composite_kernels(C: int):
     """Return ``(forward, backward, count)`` Warp kernels for C colour channels."""
@@ -323,6 +325,7 @@ def shape_cols(m: wp.vec2, sh: wp.vec4, dy: float, x0: int, x1: int) -> wp.vec2i
     return wp.vec2i(lo, hi)
 
 
+# Module-level cache: as for composite_kernels.
 @functools.cache
 def composite_tile_kernels(C: int):
     """Return ``(forward, backward)`` kernels with one thread per 16x16 tile (the CPU variant).
