@@ -456,6 +456,7 @@ def composite_tile_kernels(C: int):
         s_T: wp.array(dtype=float),
         s_buf: wp.array(dtype=vecC),
         s_bufd: wp.array(dtype=float),
+        row_last: wp.array(dtype=wp.int32),
         v_means2d: wp.array(dtype=wp.vec2),
         v_conics: wp.array(dtype=wp.vec3),
         v_opacities: wp.array(dtype=float),
@@ -468,14 +469,18 @@ def composite_tile_kernels(C: int):
         x1 = wp.min(x0 + tile, width)
         y1 = wp.min(y0 + tile, height)
         start = ranges[t, 0]
+        r0 = t * tile - y0  # row_last[r0 + py]: the last contributing index of row py
         jmax = start - 1
         for py in range(y0, y1):
+            rl = start - 1
             for px in range(x0, x1):
                 pix = py * width + px
                 s_T[pix] = out_T[pix]
                 s_buf[pix] = vecC()
                 s_bufd[pix] = 0.0
-                jmax = wp.max(jmax, out_last[pix])
+                rl = wp.max(rl, out_last[pix])
+            row_last[r0 + py] = rl
+            jmax = wp.max(jmax, rl)
         for jj in range(jmax - start + 1):
             j = jmax - jj
             g = ids[j]
@@ -494,6 +499,8 @@ def composite_tile_kernels(C: int):
             g_d = float(0.0)
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):
+                if j > row_last[r0 + py]:
+                    continue  # every pixel of the row stopped before j
                 fy = float(py) + 0.5
                 dy = m[1] - fy
                 cols = shape_cols(m, sh, dy, x0, x1)

@@ -368,12 +368,14 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
             s_T = ws.get("s_T", hw, wp.float32)
             s_buf = ws.get("s_buf", hw, colors.dtype)
             s_bufd = ws.get("s_bufd", hw, wp.float32)
+            row_last = ws.get("row_last", tiles_x * tiles_y * tile, wp.int32)
 
             def launch(w, t0, t1):
                 a = accs[w]
                 wp.launch(bwd, dim=t1 - t0,
                           inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
-                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, s_T, s_buf, s_bufd],
+                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, s_T, s_buf, s_bufd,
+                                  row_last],
                           outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
