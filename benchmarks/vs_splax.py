@@ -39,10 +39,23 @@ def _time(fn, repeats: int, warmup: int = 2) -> float:
     return float(np.median(ts))
 
 
-def splax_worker(npz: str, repeats: int) -> None:
+def splax_worker(npz: str, repeats: int, render_depth: bool = True) -> None:
     """Runs inside the splax venv: time splax.render on the scene, print JSON seconds."""
     import jax
     import jax.numpy as jnp
+    import warp as wp
+
+    # splax 0.2.3 asks for Warp graph capture in its projection FFI calls, which Warp 1.19 refuses on
+    # the CPU ("JaxCallableGraphMode.WARP is not supported for JAX CPU FFI calls"); graph capture
+    # is a CUDA launch optimisation, so on the CPU the same kernels run with plain launches.
+    if jax.default_backend() == "cpu":
+        _jax_callable = wp.jax_callable
+
+        def _cpu_jax_callable(*a, **kw):
+            kw["graph_mode"] = wp.JaxCallableGraphMode.NONE
+            return _jax_callable(*a, **kw)
+
+        wp.jax_callable = _cpu_jax_callable
     import splax
 
     d = np.load(npz)
@@ -53,14 +66,14 @@ def splax_worker(npz: str, repeats: int) -> None:
             jnp.asarray(((d["colors"] - 0.5) / SH_C0)[:, None, :]), jnp.asarray(np.log(o / (1 - o))))
     vm = jnp.asarray(d["viewmat"])
     kw = dict(viewmat=vm, background=jnp.zeros(3), img_shape=(H, W), f=(float(K[0, 0]), float(K[1, 1])),
-              c=(float(K[0, 2]), float(K[1, 2])), render_depth=True)
+              c=(float(K[0, 2]), float(K[1, 2])), render_depth=render_depth)
 
     def fwd(*a):
         return splax.render(*a, **kw)
 
     def loss(*a):
         img, alpha = fwd(*a)
-        return jnp.mean(img[..., :3]) + 0.1 * jnp.mean(img[..., 3]) + jnp.mean(alpha)
+        return jnp.mean(img[..., :3]) + (0.1 * jnp.mean(img[..., 3]) if render_depth else 0.0) + jnp.mean(alpha)
 
     f = jax.jit(fwd)
     fb = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4)))
@@ -88,9 +101,10 @@ def main() -> None:
     ap.add_argument("--splax-venv", default=os.path.join(tempfile.gettempdir(), "splax-0.2.3-venv"),
                     help="throwaway venv holding splax 0.2.3, created if missing (default: $TMPDIR/splax-0.2.3-venv)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--worker-depth", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        splax_worker(args.worker, args.repeats)
+        splax_worker(args.worker, args.repeats, bool(args.worker_depth))
         return
     if args.repeats < 1 or args.rounds < 1:
         ap.error("--repeats and --rounds must be >= 1")
@@ -120,7 +134,7 @@ def main() -> None:
                 ours_f.append(bench.time_call(lambda: jax.block_until_ready(fwd(*params)), args.repeats)[0])
                 ours_fb.append(bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats)[0])
                 out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats)],
-                                     capture_output=True, text=True)
+                                     capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
                 if out.returncode != 0:
                     sys.exit(f"splax worker failed:\n{out.stderr[-3000:]}")
                 r = json.loads(out.stdout.strip().splitlines()[-1])
