@@ -142,8 +142,12 @@ def main() -> None:
             for _ in range(args.rounds):
                 ours_f.append(bench.time_call(lambda: jax.block_until_ready(fwd(*params)), args.repeats)[0])
                 ours_fb.append(bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats)[0])
-                out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats)],
-                                     capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+                for _attempt in range(3):  # splax's CPU backward segfaults now and then
+                    out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats)],
+                                         capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+                    if out.returncode >= 0:
+                        break
+                    print(f"splax worker died with signal {-out.returncode}; retrying", flush=True)
                 if out.returncode != 0:
                     sys.exit(f"splax worker failed (exit status {out.returncode}):\n{out.stderr[-3000:]}")
                 r = json.loads(out.stdout.strip().splitlines()[-1])
