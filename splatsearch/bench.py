@@ -281,8 +281,9 @@ class BenchResult:
         return self.evals_per_s / CPU_PEAK_EVALS_PER_S
 
 
-def make_render_fns(scene: Scene):
-    """Jitted ``forward(*params)`` and ``forward+backward(*params)`` on ``scene`` (RGB+D)."""
+def make_render_fns(scene: Scene, composite: str | None = None, threads: int | None = None):
+    """Jitted ``forward(*params)`` and ``forward+backward(*params)`` on ``scene`` (RGB+D);
+    ``composite`` and ``threads`` as for :func:`splatsearch.rasterize`."""
     import jax
     import jax.numpy as jnp
 
@@ -291,7 +292,7 @@ def make_render_fns(scene: Scene):
     W, H = scene.width, scene.height
 
     def fwd(m, q, s, o, c, vm, K):
-        out = rasterize(m, q, s, o, c, vm, K, W, H, render_mode="RGB+D")
+        out = rasterize(m, q, s, o, c, vm, K, W, H, render_mode="RGB+D", composite=composite, threads=threads)
         return out.image, out.depth, out.alpha
 
     def loss(m, q, s, o, c, vm, K):
@@ -302,13 +303,14 @@ def make_render_fns(scene: Scene):
     return jax.jit(fwd), jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4, 5))), params
 
 
-def run_benchmark(scene: Scene, name: str, repeats: int = 5) -> BenchResult:
+def run_benchmark(scene: Scene, name: str, repeats: int = 5, composite: str | None = None,
+                  threads: int | None = None) -> BenchResult:
     """Time forward and forward+backward of ``scene`` (median of ``repeats`` after warm-up)."""
     import jax
 
     from splatsearch.rasterization import rasterize
 
-    fwd, fwd_bwd, params = make_render_fns(scene)
+    fwd, fwd_bwd, params = make_render_fns(scene, composite, threads)
     t_f, _ = time_call(lambda: jax.block_until_ready(fwd(*params)), repeats)
     t_fb, _ = time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), repeats)
     n_isect = int(rasterize(*params, scene.width, scene.height).meta["n_isect"])
