@@ -24,6 +24,9 @@ from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 #: slack on the log-cutoff so that float rounding never skips a pixel whose alpha reaches 1/255
 SIGMA_SLACK = wp.constant(1.0e-3)
 
+#: px added on each side of the exact ellipse spans of the tile kernels (float rounding only)
+SPAN_MARGIN = wp.constant(0.05)
+
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 
 
@@ -92,6 +95,8 @@ def composite_top_id(
     out_weight[pix] = best_w
 
 
+# Module-level cache: the kernels of each channel count C are generated (and their Warp modules
+# compiled) once per process.
 @functools.cache
 def composite_kernels(C: int):
     """Return ``(forward, backward, count)`` Warp kernels for C colour channels."""
@@ -273,41 +278,54 @@ def cutoff(o: float) -> float:
 
 
 @wp.func
-def row_span(m: wp.vec2, cn: wp.vec3, tcut: float, y0: int, y1: int) -> wp.vec2i:
-    """Inclusive pixel rows [lo, hi] within [y0, y1) where sigma <= tcut is possible (+1 row margin)."""
+def ellipse_shape(cn: wp.vec3, tcut: float) -> wp.vec4:
+    """Per-Gaussian constants of the region sigma <= tcut, computed once in float64 so that the
+    per-row spans below need one float32 sqrt: (ry, k1, A, B) with row half-height
+    ry = sqrt(2 tcut c0 / det) (1 + 1e-3) + SPAN_MARGIN (huge when det <= 0) and, for a row offset dy, the dx interval
+    k1 dy -/+ sqrt(A - B dy^2) (k1 = -c1 / c0, A = 2 tcut / c0, B = det / c0^2; A = -1 when
+    c0 <= 0, an empty span)."""
     c0 = wp.float64(cn[0])
     c1 = wp.float64(cn[1])
     c2 = wp.float64(cn[2])
     det = c0 * c2 - c1 * c1
-    lo = y0
-    hi = y1 - 1
+    ry = float(1.0e30)
     if det > wp.float64(0.0):
-        ry = wp.float32(wp.sqrt(wp.float64(2.0) * wp.float64(tcut) * c0 / det)) + 1.0
-        lo = wp.max(y0, int(wp.ceil(wp.clamp(m[1] - 0.5 - ry, float(y0) - 1.0, float(y1)))))
-        hi = wp.min(y1 - 1, int(wp.floor(wp.clamp(m[1] - 0.5 + ry, float(y0) - 1.0, float(y1)))))
+        ry = wp.float32(wp.sqrt(wp.float64(2.0) * wp.float64(tcut) * c0 / det)) * 1.001 + SPAN_MARGIN
+    if c0 <= wp.float64(0.0):
+        return wp.vec4(ry, 0.0, -1.0, 0.0)
+    ic0 = wp.float64(1.0) / c0
+    return wp.vec4(ry, wp.float32(-c1 * ic0), wp.float32(wp.float64(2.0) * wp.float64(tcut) * ic0),
+                   wp.float32(det * ic0 * ic0))
+
+
+@wp.func
+def shape_rows(m: wp.vec2, sh: wp.vec4, y0: int, y1: int) -> wp.vec2i:
+    """Inclusive pixel rows [lo, hi] within [y0, y1) where sigma <= tcut is possible."""
+    ry = sh[0]
+    lo = wp.max(y0, int(wp.ceil(wp.clamp(m[1] - 0.5 - ry, float(y0) - 1.0, float(y1)))))
+    hi = wp.min(y1 - 1, int(wp.floor(wp.clamp(m[1] - 0.5 + ry, float(y0) - 1.0, float(y1)))))
     return wp.vec2i(lo, hi)
 
 
 @wp.func
-def col_span(m: wp.vec2, cn: wp.vec3, tcut: float, dy: float, x0: int, x1: int) -> wp.vec2i:
+def shape_cols(m: wp.vec2, sh: wp.vec4, dy: float, x0: int, x1: int) -> wp.vec2i:
     """Inclusive pixel columns [lo, hi] within [x0, x1) of row offset dy = my - (py + 0.5) where
-    sigma <= tcut is possible (+1 px margin); lo > hi when the row misses the ellipse."""
-    c0 = wp.float64(cn[0])
-    c1 = wp.float64(cn[1])
-    c2 = wp.float64(cn[2])
-    dyd = wp.float64(dy)
-    disc = wp.float64(2.0) * c0 * wp.float64(tcut) - (c0 * c2 - c1 * c1) * dyd * dyd
-    if disc < wp.float64(0.0) or c0 <= wp.float64(0.0):
+    sigma <= tcut is possible; lo > hi when the row misses the ellipse. The margin,
+    SPAN_MARGIN px plus 1e-3 of the ellipse's half-width, and the 1e-5 relative tolerance of the
+    emptiness test cover the float32 rounding of A - B dy^2; the rounding of sigma itself at a
+    pixel is covered by SIGMA_SLACK in tcut."""
+    A = sh[2]
+    disc = A - sh[3] * dy * dy
+    if disc < -1.0e-5 * wp.abs(A):
         return wp.vec2i(x0, x0 - 1)
-    sq = wp.sqrt(disc)
-    # sigma(dx) <= tcut  <=>  dx in [(-c1 dy - sq) / c0, (-c1 dy + sq) / c0], dx = mx - (px + 0.5)
-    dx_lo = wp.float32((-c1 * dyd - sq) / c0)
-    dx_hi = wp.float32((-c1 * dyd + sq) / c0)
-    lo = wp.max(x0, int(wp.ceil(wp.clamp(m[0] - dx_hi - 1.5, float(x0) - 1.0, float(x1)))))
-    hi = wp.min(x1 - 1, int(wp.floor(wp.clamp(m[0] - dx_lo + 0.5, float(x0) - 1.0, float(x1)))))
+    hw = wp.sqrt(wp.max(disc, 0.0)) + 1.0e-3 * wp.sqrt(wp.abs(A)) + SPAN_MARGIN
+    # dx = mx - (px + 0.5) in [k1 dy - hw, k1 dy + hw]
+    lo = wp.max(x0, int(wp.ceil(wp.clamp(m[0] - sh[1] * dy - hw - 0.5, float(x0) - 1.0, float(x1)))))
+    hi = wp.min(x1 - 1, int(wp.floor(wp.clamp(m[0] - sh[1] * dy + hw - 0.5, float(x0) - 1.0, float(x1)))))
     return wp.vec2i(lo, hi)
 
 
+# Module-level cache: as for composite_kernels.
 @functools.cache
 def composite_tile_kernels(C: int):
     """Return ``(forward, backward)`` kernels with one thread per 16x16 tile (the CPU variant).
@@ -336,6 +354,7 @@ def composite_tile_kernels(C: int):
         tiles_x: int,
         tile0: int,
         done: wp.array(dtype=wp.int32),
+        live: wp.array(dtype=wp.vec2i),
         out_color: wp.array(dtype=vecC),
         out_depth: wp.array(dtype=float),
         out_T: wp.array(dtype=float),
@@ -348,7 +367,9 @@ def composite_tile_kernels(C: int):
         y1 = wp.min(y0 + tile, height)
         start = ranges[t, 0]
         end = ranges[t, 1]
+        r0 = t * tile - y0  # live[r0 + py]: columns [lo, hi] of row py that are not saturated yet
         for py in range(y0, y1):
+            live[r0 + py] = wp.vec2i(x0, x1 - 1)
             for px in range(x0, x1):
                 pix = py * width + px
                 out_color[pix] = vecC()
@@ -356,19 +377,27 @@ def composite_tile_kernels(C: int):
                 out_T[pix] = 1.0
                 out_last[pix] = start - 1
                 done[pix] = 0
-        n_pix = (x1 - x0) * (y1 - y0)
-        n_done = int(0)
+        ylo = y0  # rows [ylo, yhi] still hold an unsaturated pixel
+        yhi = y1 - 1
         for j in range(start, end):
+            if ylo > yhi:
+                break  # every pixel of the tile is saturated
             g = ids[j]
             m = means2d[g]
             cn = conics[g]
             o = opacities[g]
             tcut = cutoff(o)
-            rows = row_span(m, cn, tcut, y0, y1)
+            sh = ellipse_shape(cn, tcut)
+            rows = shape_rows(m, sh, ylo, yhi + 1)
+            c = colors[g]
+            d = depths[g]
             for py in range(rows[0], rows[1] + 1):
+                lv = live[r0 + py]
+                if lv[0] > lv[1]:
+                    continue
                 fy = float(py) + 0.5
                 dy = m[1] - fy
-                cols = col_span(m, cn, tcut, dy, x0, x1)
+                cols = shape_cols(m, sh, dy, lv[0], lv[1] + 1)
                 for px in range(cols[0], cols[1] + 1):
                     pix = py * width + px
                     if done[pix] != 0:
@@ -384,15 +413,26 @@ def composite_tile_kernels(C: int):
                     nT = T * (1.0 - alpha)
                     if nT <= T_MIN:
                         done[pix] = 1
-                        n_done += 1
+                        # shrink the row's live columns, then the tile's live rows
+                        lo = lv[0]
+                        hi = lv[1]
+                        while lo <= hi and done[py * width + lo] != 0:
+                            lo += 1
+                        while hi >= lo and done[py * width + hi] != 0:
+                            hi -= 1
+                        lv = wp.vec2i(lo, hi)
+                        live[r0 + py] = lv
+                        if lo > hi:
+                            while ylo <= yhi and live[r0 + ylo][0] > live[r0 + ylo][1]:
+                                ylo += 1
+                            while yhi >= ylo and live[r0 + yhi][0] > live[r0 + yhi][1]:
+                                yhi -= 1
                         continue
                     w = alpha * T
-                    out_color[pix] = out_color[pix] + colors[g] * w
-                    out_depth[pix] = out_depth[pix] + depths[g] * w
+                    out_color[pix] = out_color[pix] + c * w
+                    out_depth[pix] = out_depth[pix] + d * w
                     out_T[pix] = nT
                     out_last[pix] = j
-            if n_done == n_pix:
-                break
 
     @wp.kernel(module="unique", enable_backward=False)
     def composite_bwd_tile(
@@ -416,6 +456,7 @@ def composite_tile_kernels(C: int):
         s_T: wp.array(dtype=float),
         s_buf: wp.array(dtype=vecC),
         s_bufd: wp.array(dtype=float),
+        row_last: wp.array(dtype=wp.int32),
         v_means2d: wp.array(dtype=wp.vec2),
         v_conics: wp.array(dtype=wp.vec3),
         v_opacities: wp.array(dtype=float),
@@ -428,14 +469,18 @@ def composite_tile_kernels(C: int):
         x1 = wp.min(x0 + tile, width)
         y1 = wp.min(y0 + tile, height)
         start = ranges[t, 0]
+        r0 = t * tile - y0  # row_last[r0 + py]: the last contributing index of row py
         jmax = start - 1
         for py in range(y0, y1):
+            rl = start - 1
             for px in range(x0, x1):
                 pix = py * width + px
                 s_T[pix] = out_T[pix]
                 s_buf[pix] = vecC()
                 s_bufd[pix] = 0.0
-                jmax = wp.max(jmax, out_last[pix])
+                rl = wp.max(rl, out_last[pix])
+            row_last[r0 + py] = rl
+            jmax = wp.max(jmax, rl)
         for jj in range(jmax - start + 1):
             j = jmax - jj
             g = ids[j]
@@ -445,7 +490,8 @@ def composite_tile_kernels(C: int):
             c = colors[g]
             d = depths[g]
             tcut = cutoff(o)
-            rows = row_span(m, cn, tcut, y0, y1)
+            sh = ellipse_shape(cn, tcut)
+            rows = shape_rows(m, sh, y0, y1)
             g_m = wp.vec2()
             g_cn = wp.vec3()
             g_o = float(0.0)
@@ -453,9 +499,11 @@ def composite_tile_kernels(C: int):
             g_d = float(0.0)
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):
+                if j > row_last[r0 + py]:
+                    continue  # every pixel of the row stopped before j
                 fy = float(py) + 0.5
                 dy = m[1] - fy
-                cols = col_span(m, cn, tcut, dy, x0, x1)
+                cols = shape_cols(m, sh, dy, x0, x1)
                 for px in range(cols[0], cols[1] + 1):
                     pix = py * width + px
                     if j > out_last[pix]:

@@ -8,25 +8,21 @@ fixed order: results are bitwise reproducible.
 
 from __future__ import annotations
 
-import os
 import threading
 
 import warp as wp
 
+from .config import default_threads, resolve_threads
+
 
 def cpu_threads() -> int:
-    """Worker threads for CPU compositing: ``SPLATSEARCH_THREADS`` or the usable core count."""
-    env = os.environ.get("SPLATSEARCH_THREADS")
-    if env:
-        return max(1, int(env))
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
+    """Default worker threads for CPU launches (see :mod:`splatsearch.kernels.config`)."""
+    return default_threads()
 
 
-def n_threads_for(device) -> int:
-    return cpu_threads() if wp.get_device(device).is_cpu else 1
+def n_threads_for(device, threads: int | None = None) -> int:
+    """Worker threads for a launch on ``device``: ``threads`` or the default on the CPU, 1 on CUDA."""
+    return resolve_threads(threads, device)
 
 
 def run_bands(bands, n_threads: int, fn, kernel=None, device=None) -> None:
@@ -62,10 +58,11 @@ def run_bands(bands, n_threads: int, fn, kernel=None, device=None) -> None:
         raise errors[0]
 
 
-def launch_split(kernel, n: int, inputs, outputs: list, device) -> None:
+def launch_split(kernel, n: int, inputs, outputs: list, device, threads: int | None = None) -> None:
     """Launch a per-element ``kernel`` over n elements; on the CPU split in contiguous chunks over
-    the worker threads. ``inputs(offset, worker)`` returns the input list for one chunk."""
-    n_threads = n_threads_for(device) if n >= 4096 else 1
+    ``threads`` workers (None: the default). ``inputs(offset, worker)`` returns the input list
+    for one chunk."""
+    n_threads = n_threads_for(device, threads) if n >= 4096 else 1
     bounds = [(n * w // n_threads, n * (w + 1) // n_threads) for w in range(n_threads)]
 
     def launch(w, a, b):

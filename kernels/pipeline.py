@@ -20,7 +20,6 @@ the GIL inside a launch). Each worker has its own gradient accumulators, summed 
 
 from __future__ import annotations
 
-import os
 import threading
 from dataclasses import dataclass, field
 
@@ -32,6 +31,7 @@ wp.set_module_options({"enable_backward": False})
 
 from .binning import count_tiles_kernel, depth_keys_kernel, depth_rank_kernel, tile_ranges_kernel, write_keys_kernel
 from .composite import composite_kernels, composite_tile_kernels, composite_top_id
+from .config import resolve_composite
 from .parallel import launch_split, n_threads_for, run_bands
 from .projection import project_bwd_kernel, project_fwd_kernel
 from .validate import FLAG_MESSAGES, N_FLAGS, validate_camera_kernel, validate_gaussians_kernel
@@ -127,6 +127,8 @@ class _DeviceState:
     generation: int = 0
 
 
+#: Module-level cache: one :class:`_DeviceState` (scratch workspace + ring of binning slots) per
+#: device name, created on first use and kept for the life of the process; its buffers only grow.
 _STATES: dict[str, _DeviceState] = {}
 _STATES_LOCK = threading.Lock()
 
@@ -147,17 +149,19 @@ def grid_dims(width: int, height: int, tile: int = TILE_SIZE) -> tuple[int, int]
 
 
 def project(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
-            means2d, conics, depths, radii) -> None:
+            means2d, conics, depths, radii, threads: int | None = None) -> None:
     """Launch the projection kernel (all arguments are Warp arrays / scalars)."""
     n = means.shape[0]
     if n == 0:
         return
     pre = [means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d]
-    launch_split(project_fwd_kernel, n, lambda i0, _w: pre + [i0], [means2d, conics, depths, radii], means.device)
+    launch_split(project_fwd_kernel, n, lambda i0, _w: pre + [i0], [means2d, conics, depths, radii], means.device,
+                 threads)
 
 
 def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, width: int, height: int,
-                  tile: int = TILE_SIZE, flags: wp.array | None = None) -> tuple[wp.array, wp.array, int]:
+                  tile: int = TILE_SIZE, flags: wp.array | None = None,
+                  threads: int | None = None) -> tuple[wp.array, wp.array, int]:
     """Build the depth-ordered per-tile intersection lists.
 
     Returns ``(ranges (num_tiles, 2) int32, ids (n_isect,) int32, n_isect)``; the buffers belong
@@ -185,7 +189,7 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     offsets = ws.get("offsets", n, wp.int32)
     grid = [tile, tiles_x, tiles_y, width, height]
     gauss = [means2d, conics, opacities, radii]
-    launch_split(count_tiles_kernel, n, lambda j0, _w: gauss + grid + [j0], [counts, masks], device)
+    launch_split(count_tiles_kernel, n, lambda j0, _w: gauss + grid + [j0], [counts, masks], device, threads)
     wp.utils.array_scan(counts, offsets, inclusive=True)
     if flags is not None:
         wp.launch(_stash_total_kernel, dim=1, inputs=[offsets, n, flags], device=device)
@@ -200,7 +204,7 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     keys = ws.get("keys", 2 * n_isect, wp.int64)
     rank_bits = max(1, int(n - 1).bit_length())
     launch_split(write_keys_kernel, n, lambda j0, _w: [rank] + gauss + [offsets, masks] + grid + [j0, rank_bits],
-                 [keys, ids], device)
+                 [keys, ids], device, threads)
     end_bit = rank_bits + max(1, int(n_tiles - 1).bit_length())
     wp.utils.radix_sort_pairs(keys, ids, n_isect, end_bit=end_bit)
     wp.launch(tile_ranges_kernel, dim=n_isect, inputs=[keys, n_isect, rank_bits], outputs=[ranges], device=device)
@@ -226,15 +230,6 @@ def _row_bands(width: int, height: int, tile: int, n_threads: int) -> list[tuple
     return bands
 
 
-def composite_variant(device) -> str:
-    """"tile" (one thread per tile, exact ellipse spans; best on CPU) or "pixel" (one thread per
-    pixel, the GPU layout). ``SPLATSEARCH_COMPOSITE`` overrides the per-device default."""
-    env = os.environ.get("SPLATSEARCH_COMPOSITE", "").strip().lower()
-    if env in ("tile", "pixel"):
-        return env
-    return "tile" if wp.get_device(device).is_cpu else "pixel"
-
-
 def _tile_bands(n_tiles: int, tiles_x: int, n_threads: int) -> list[tuple[int, int]]:
     """Tile-index ranges, one tile row each when threaded (rows differ a lot in cost)."""
     if n_threads <= 1:
@@ -245,8 +240,12 @@ def _tile_bands(n_tiles: int, tiles_x: int, n_threads: int) -> list[tuple[int, i
 def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
                       near: float, far: float, eps2d: float,
                       out_color, out_depth, out_T, out_last, means2d, conics, depths, radii,
-                      n_isect_out, handle_out, tile: int = TILE_SIZE, validate: bool = True) -> BinState:
+                      n_isect_out, handle_out, tile: int = TILE_SIZE, validate: bool = True,
+                      composite: str | None = None, threads: int | None = None) -> BinState:
     """Full forward pass into the given output arrays; returns the slot that holds the binning.
+
+    ``composite``: "tile" or "pixel" compositing kernel, ``threads``: CPU worker threads; None
+    takes the defaults of :mod:`splatsearch.kernels.config`.
 
     Shapes: means (N,) vec3, quats (N,) vec4 wxyz, scales (N,) vec3, opacities (N,), colors (N,)
     vecC, viewmat (1,) mat44, K (1,) mat33; images are flat (H*W,) in row-major pixel order.
@@ -266,25 +265,26 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
                           outputs=[flags], device=device)
             wp.launch(validate_camera_kernel, dim=1, inputs=[viewmat, K], outputs=[flags], device=device)
         project(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
-                means2d, conics, depths, radii)
+                means2d, conics, depths, radii, threads)
         slot_idx = st.next_slot
         st.next_slot = (st.next_slot + 1) % N_SLOTS
         st.generation += 1
         slot = st.slots[slot_idx]
         slot.generation = -1
         ranges, ids, n_isect = bin_gaussians(slot.ws, means2d, conics, opacities, depths, radii,
-                                             width, height, tile, flags=flags)
+                                             width, height, tile, flags=flags, threads=threads)
         slot.generation, slot.ranges, slot.ids, slot.n_isect = st.generation, ranges, ids, n_isect
         tiles_x, tiles_y = grid_dims(width, height, tile)
-        n_threads = n_threads_for(device)
-        if composite_variant(device) == "tile":
+        n_threads = n_threads_for(device, threads)
+        if resolve_composite(composite, device) == "tile":
             fwd, _ = composite_tile_kernels(C)
             done = st.ws.get("done", width * height, wp.int32)
+            live = st.ws.get("live", tiles_x * tiles_y * tile, wp.vec2i)
 
             def launch(_w, t0, t1):
                 wp.launch(fwd, dim=t1 - t0,
                           inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
-                                  tiles_x, t0, done],
+                                  tiles_x, t0, done, live],
                           outputs=[out_color, out_depth, out_T, out_last], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
@@ -305,7 +305,8 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
 
 
 def lookup_binning(device, handle: tuple[int, int], means2d, conics, opacities, depths, radii,
-                   width: int, height: int, tile: int = TILE_SIZE) -> tuple[wp.array, wp.array, int]:
+                   width: int, height: int, tile: int = TILE_SIZE,
+                   threads: int | None = None) -> tuple[wp.array, wp.array, int]:
     """Binning for ``handle`` from the slot ring, or recomputed when the slot was reused."""
     st = _device_state(device)
     slot_idx, gen = handle
@@ -313,15 +314,15 @@ def lookup_binning(device, handle: tuple[int, int], means2d, conics, opacities, 
         slot = st.slots[slot_idx]
         if slot.generation == gen and slot.ranges is not None:
             return slot.ranges, slot.ids, slot.n_isect
-    return bin_gaussians(st.ws, means2d, conics, opacities, depths, radii, width, height, tile)
+    return bin_gaussians(st.ws, means2d, conics, opacities, depths, radii, width, height, tile, threads=threads)
 
 
 def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
                        eps2d: float, means2d, conics, depths, radii, out_T, out_last, handle,
                        v_color, v_depth, v_alpha,
                        v_means, v_quats, v_scales, v_opacities, v_colors, v_viewmat,
-                       tile: int = TILE_SIZE) -> None:
-    """Hand-written adjoint of :func:`rasterize_forward`.
+                       tile: int = TILE_SIZE, composite: str | None = None, threads: int | None = None) -> None:
+    """Hand-written adjoint of :func:`rasterize_forward` (``composite`` and ``threads`` as there).
 
     ``v_color`` (H*W,) vecC, ``v_depth`` and ``v_alpha`` (H*W,) are the cotangents of the
     composited colour, depth (D) and alpha = 1 - T. Writes v_means (N,) vec3, v_quats (N,) vec4,
@@ -339,10 +340,10 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
         if n == 0:
             return
         ranges, ids, _ = lookup_binning(device, handle, means2d, conics, opacities, depths, radii,
-                                        width, height, tile)
+                                        width, height, tile, threads)
         tiles_x, tiles_y = grid_dims(width, height, tile)
-        n_threads = n_threads_for(device)
-        variant = composite_variant(device)
+        n_threads = n_threads_for(device, threads)
+        variant = resolve_composite(composite, device)
         ws = st.ws
         accs = []
         for w in range(n_threads):
@@ -367,12 +368,14 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
             s_T = ws.get("s_T", hw, wp.float32)
             s_buf = ws.get("s_buf", hw, colors.dtype)
             s_bufd = ws.get("s_bufd", hw, wp.float32)
+            row_last = ws.get("row_last", tiles_x * tiles_y * tile, wp.int32)
 
             def launch(w, t0, t1):
                 a = accs[w]
                 wp.launch(bwd, dim=t1 - t0,
                           inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
-                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, s_T, s_buf, s_bufd],
+                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, s_T, s_buf, s_bufd,
+                                  row_last],
                           outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
@@ -401,12 +404,12 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
         per = VIEWMAT_SLOTS // max(1, n_threads)
         pre = [means, quats, scales, viewmat, K, width, height, eps2d, conics, radii, base[0], base[1], base[4]]
         launch_split(project_bwd_kernel, n, lambda i0, w: pre + [i0, w * per, per],
-                     [v_means, v_quats, v_scales, vm_acc], device)
+                     [v_means, v_quats, v_scales, vm_acc], device, threads)
         wp.launch(_sum_rows_kernel, dim=16, inputs=[vm_acc, v_viewmat], device=device)
 
 
 def top_ids(means, quats, scales, opacities, viewmat, K, width: int, height: int, near: float, far: float,
-            eps2d: float, tile: int = TILE_SIZE) -> tuple[np.ndarray, np.ndarray]:
+            eps2d: float, tile: int = TILE_SIZE, threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Index of the Gaussian with the largest compositing weight at every pixel.
 
     Inputs as for :func:`rasterize_forward` (Warp arrays). Returns numpy ``(ids (H*W,) int32,
@@ -423,8 +426,9 @@ def top_ids(means, quats, scales, opacities, viewmat, K, width: int, height: int
         depths = ws.get("tid_depths", n, wp.float32)
         radii = ws.get("tid_radii", n, wp.vec2i)
         project(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
-                means2d, conics, depths, radii)
-        ranges, ids, _ = bin_gaussians(ws, means2d, conics, opacities, depths, radii, width, height, tile)
+                means2d, conics, depths, radii, threads)
+        ranges, ids, _ = bin_gaussians(ws, means2d, conics, opacities, depths, radii, width, height, tile,
+                                       threads=threads)
         tiles_x, _ = grid_dims(width, height, tile)
         out_id = wp.empty(width * height, dtype=wp.int32, device=device)
         out_w = wp.empty(width * height, dtype=wp.float32, device=device)
@@ -434,7 +438,7 @@ def top_ids(means, quats, scales, opacities, viewmat, K, width: int, height: int
                       inputs=[ranges, ids, means2d, conics, opacities, width, tile, tiles_x, p0],
                       outputs=[out_id, out_w], device=device)
 
-        n_threads = n_threads_for(device)
+        n_threads = n_threads_for(device, threads)
         run_bands(_row_bands(width, height, tile, n_threads), n_threads, launch, composite_top_id, device)
         return out_id.numpy().copy(), out_w.numpy().copy()
 

@@ -1,9 +1,17 @@
 """Benchmark scenes and timing helpers for the rasterizer (used by ``splatsearch bench`` and
 ``benchmarks/``).
 
-The *profile scene* is the one the rasterizer targets are stated on: 111,785 Gaussians sampled
-on the surfaces of a procedural room (floor, ceiling, four walls and a few furniture boxes), scales
-U[1e-4, 0.02] m, random unit quaternions, opacities U[0, 1], seen at 648x420 from inside the room.
+Scenes (the letters of the rasterizer-speed issue):
+
+* (a) ``profile``: 111,785 Gaussians sampled on the surfaces of a procedural room (floor, ceiling,
+  four walls and a few furniture boxes), scales U[1e-4, 0.02] m, random unit quaternions,
+  opacities U[0, 1], seen at 648x420 from inside the room;
+* (b) ``heavy``: the same room with scales U[5e-4, 0.1] m, the overlap a mapped interior has
+  (about 3.5x the tile intersections of (a));
+* (c) ``house``: the map the mapper builds of simulator house 0 (a development house) from the
+  first 40 frames of its walk, rendered from the walk's poses at 320x240 and 640x480; built once
+  and cached (see :func:`house_map`);
+* (d) ``random10k``: 10k random Gaussians in a 4 m cube at 320x240.
 """
 
 from __future__ import annotations
@@ -83,8 +91,10 @@ def _room_quads(rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, 
     return quads
 
 
-def profile_scene(n: int = PROFILE_N, width: int = PROFILE_W, height: int = PROFILE_H, seed: int = 0) -> Scene:
-    """The rasterizer's profile scene (see module docstring); deterministic per seed."""
+def profile_scene(n: int = PROFILE_N, width: int = PROFILE_W, height: int = PROFILE_H, seed: int = 0,
+                  scale_range: tuple[float, float] = (1e-4, 0.02)) -> Scene:
+    """The rasterizer's profile scene (see module docstring); deterministic per seed.
+    ``scale_range`` (m): bounds of the uniform per-axis scales."""
     rng = np.random.default_rng(seed)
     quads = _room_quads(rng)
     areas = np.array([np.linalg.norm(np.cross(u, v)) for _, u, v, _ in quads])
@@ -100,7 +110,7 @@ def profile_scene(n: int = PROFILE_N, width: int = PROFILE_W, height: int = PROF
     colors = np.clip(base * (0.75 + 0.25 * checker) + rng.normal(0, 0.05, (n, 3)), 0, 1)
     quats = rng.normal(size=(n, 4))
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
-    scales = rng.uniform(1e-4, 0.02, (n, 3))
+    scales = rng.uniform(scale_range[0], scale_range[1], (n, 3))
     opac = rng.uniform(0, 1, n)
     vm = look_at([1.0, 1.0, 1.3], [5.0, 3.2, 0.9])
     K = intrinsics_from_hfov(width, height, 79.0)
@@ -108,8 +118,91 @@ def profile_scene(n: int = PROFILE_N, width: int = PROFILE_W, height: int = PROF
     return Scene(f32(means), f32(quats), f32(scales), f32(opac), f32(colors), vm, K, width, height)
 
 
+def heavy_scene(width: int = PROFILE_W, height: int = PROFILE_H, seed: int = 0) -> Scene:
+    """Scene (b): the profile room with realistic, overlapping scales U[5e-4, 0.1] m."""
+    return profile_scene(PROFILE_N, width, height, seed, scale_range=HEAVY_SCALES)
+
+
+#: scale bounds (m) of scene (b)
+HEAVY_SCALES = (5e-4, 0.1)
+#: house, frame count and seed of the walk that scene (c)'s map is built from (a development house)
+HOUSE_SEED, HOUSE_FRAMES = 0, 40
+_HOUSE_FORMAT = "splatsearch-bench-house-1"
+
+
+def house_cache_path(seed: int = HOUSE_SEED, n_frames: int = HOUSE_FRAMES) -> str:
+    """``$XDG_CACHE_HOME/splatsearch/bench/house<seed>_<n>f.npz`` (``~/.cache`` by default)."""
+    import os
+
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "splatsearch", "bench", f"house{seed}_{n_frames}f.npz")
+
+
+def house_map(seed: int = HOUSE_SEED, n_frames: int = HOUSE_FRAMES, path: str | None = None,
+              progress=None) -> dict:
+    """The map scene (c) renders: ``{means, quats, scales, opacities, colors (float32), viewmats
+    (F, 4, 4), K (3, 3) at 320x240}``, the active Gaussians of a :class:`~splatsearch.mapper.Mapper`
+    (default config, 15 iterations) after ``n_frames`` frames of ``sim_trajectory(seed)``.
+
+    Loaded from ``path``; by default from the fixture ``benchmarks/data/house<seed>_<n>f.npz`` of a
+    source checkout, else from :func:`house_cache_path`. When missing it is built (1-6 s per frame
+    on 2 cores) and written atomically there. ``progress(i, n)`` is called per mapped frame.
+    """
+    import io
+    import os
+
+    if path is None:
+        # a source checkout ships the default map as a fixture (1.2 MB), so every run renders the same map
+        fixture = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "data", f"house{seed}_{n_frames}f.npz")
+        path = fixture if os.path.exists(fixture) else house_cache_path(seed, n_frames)
+    if os.path.exists(path):
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if str(z["format"]) == _HOUSE_FORMAT:
+                    return {k: z[k] for k in z.files if k != "format"}
+        except (OSError, ValueError, KeyError):
+            pass  # unreadable or stale: rebuild
+    import jax
+
+    from splatsearch.datasets import sim_trajectory
+    from splatsearch.gaussians import render_args
+    from splatsearch.io import atomic_write_bytes
+    from splatsearch.mapper import Mapper
+
+    frames, K, W, H, _ = sim_trajectory(seed, n_frames)
+    m = Mapper(K, W, H)
+    for i, f in enumerate(frames):
+        m.update(f.rgb, f.depth, f.viewmat)
+        if progress is not None:
+            progress(i + 1, len(frames))
+    n = m.map.n_active
+    args = [np.asarray(a)[:n] for a in jax.device_get(render_args(m.map.params(), m.map.active, m.map.isotropic))]
+    out = dict(zip(("means", "quats", "scales", "opacities", "colors"), (a.astype(np.float32) for a in args)))
+    out["viewmats"] = np.stack([np.asarray(f.viewmat, np.float32) for f in frames])
+    out["K"] = np.asarray(K, np.float32)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, format=np.array(_HOUSE_FORMAT), **out)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    atomic_write_bytes(path, buf.getvalue())
+    return out
+
+
+def house_scene(width: int = 320, height: int = 240, frame: int = HOUSE_FRAMES // 2, seed: int = HOUSE_SEED,
+                n_frames: int = HOUSE_FRAMES) -> Scene:
+    """Scene (c): the cached house map seen from pose ``frame`` of its walk; K is scaled from the
+    walk's 320x240 intrinsics to ``width`` x ``height``."""
+    d = house_map(seed, n_frames)
+    K = d["K"].copy()
+    K[0] *= width / 320.0
+    K[1] *= height / 240.0
+    f32 = lambda x: np.ascontiguousarray(x, np.float32)  # noqa: E731
+    q = d["quats"] / np.maximum(np.linalg.norm(d["quats"], axis=1, keepdims=True), 1e-12)
+    return Scene(f32(d["means"]), f32(q), f32(d["scales"]), f32(d["opacities"]), f32(d["colors"]),
+                 f32(d["viewmats"][frame]), f32(K), width, height)
+
+
 def random_scene(n: int = 10_000, width: int = 320, height: int = 240, seed: int = 0) -> Scene:
-    """n Gaussians in a 4 m cube in front of a camera: benchmark (b) of the rasterizer issue."""
+    """Scene (d): n Gaussians in a 4 m cube in front of a camera."""
     rng = np.random.default_rng(seed)
     means = rng.uniform(-2, 2, (n, 3)) + np.array([0, 0, 4.0])
     quats = rng.normal(size=(n, 4))
@@ -118,6 +211,16 @@ def random_scene(n: int = 10_000, width: int = 320, height: int = 240, seed: int
     f32 = lambda x: np.ascontiguousarray(x, np.float32)  # noqa: E731
     return Scene(f32(means), f32(quats), f32(scales), f32(rng.uniform(0, 1, n)), f32(rng.uniform(0, 1, (n, 3))),
                  np.eye(4, dtype=np.float32), intrinsics_from_hfov(width, height, 79.0), width, height)
+
+
+def scene_makers() -> dict:
+    """``{name: make}`` with ``make()`` returning ``[(label, Scene), ...]`` for scenes (a)-(d)."""
+    return {
+        "profile": lambda: [("(a) profile 112k 648x420", profile_scene())],
+        "heavy": lambda: [("(b) heavy 112k 648x420", heavy_scene())],
+        "house": lambda: [(f"(c) house {w}x{h}", house_scene(w, h)) for w, h in ((320, 240), (640, 480))],
+        "random10k": lambda: [("(d) random 10k 320x240", random_scene())],
+    }
 
 
 def count_gaussian_pixel_evaluations(scene: Scene) -> int:
@@ -178,8 +281,9 @@ class BenchResult:
         return self.evals_per_s / CPU_PEAK_EVALS_PER_S
 
 
-def make_render_fns(scene: Scene):
-    """Jitted ``forward(*params)`` and ``forward+backward(*params)`` on ``scene`` (RGB+D)."""
+def make_render_fns(scene: Scene, composite: str | None = None, threads: int | None = None):
+    """Jitted ``forward(*params)`` and ``forward+backward(*params)`` on ``scene`` (RGB+D);
+    ``composite`` and ``threads`` as for :func:`splatsearch.rasterize`."""
     import jax
     import jax.numpy as jnp
 
@@ -188,7 +292,7 @@ def make_render_fns(scene: Scene):
     W, H = scene.width, scene.height
 
     def fwd(m, q, s, o, c, vm, K):
-        out = rasterize(m, q, s, o, c, vm, K, W, H, render_mode="RGB+D")
+        out = rasterize(m, q, s, o, c, vm, K, W, H, render_mode="RGB+D", composite=composite, threads=threads)
         return out.image, out.depth, out.alpha
 
     def loss(m, q, s, o, c, vm, K):
@@ -199,13 +303,14 @@ def make_render_fns(scene: Scene):
     return jax.jit(fwd), jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4, 5))), params
 
 
-def run_benchmark(scene: Scene, name: str, repeats: int = 5) -> BenchResult:
+def run_benchmark(scene: Scene, name: str, repeats: int = 5, composite: str | None = None,
+                  threads: int | None = None) -> BenchResult:
     """Time forward and forward+backward of ``scene`` (median of ``repeats`` after warm-up)."""
     import jax
 
     from splatsearch.rasterization import rasterize
 
-    fwd, fwd_bwd, params = make_render_fns(scene)
+    fwd, fwd_bwd, params = make_render_fns(scene, composite, threads)
     t_f, _ = time_call(lambda: jax.block_until_ready(fwd(*params)), repeats)
     t_fb, _ = time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), repeats)
     n_isect = int(rasterize(*params, scene.width, scene.height).meta["n_isect"])

@@ -19,6 +19,12 @@ from splatsearch.kernels import pipeline as _pl
 
 wp.config.quiet = True
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+#: compositing kernels; passed to the Warp callbacks as their index + 1 (0: the default)
+_COMPOSITES = ("tile", "pixel")
+
+
+def _composite_arg(code: int):
+    return None if code == 0 else _COMPOSITES[code - 1]
 
 
 class RasterOutput(NamedTuple):
@@ -42,6 +48,7 @@ class RasterOutput(NamedTuple):
 # Warp callbacks, one pair per colour-channel count
 # --------------------------------------------------------------------------------------------
 
+# Module-level cache: one pair of jax_callable wrappers per channel count C, built on first use.
 @functools.cache
 def _callables(C: int):
     vecC = wp.types.vector(length=C, dtype=wp.float32)
@@ -60,6 +67,8 @@ def _callables(C: int):
         far: float,
         eps2d: float,
         validate: int,
+        composite: int,
+        threads: int,
         out_color: wp.array(dtype=vecC),
         out_depth: wp.array(dtype=wp.float32),
         out_T: wp.array(dtype=wp.float32),
@@ -73,7 +82,8 @@ def _callables(C: int):
     ):
         _pl.rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width, height,
                               near, far, eps2d, out_color, out_depth, out_T, out_last, means2d,
-                              conics, depths, radii, n_isect, handle, validate=bool(validate))
+                              conics, depths, radii, n_isect, handle, validate=bool(validate),
+                              composite=_composite_arg(composite), threads=threads or None)
 
     def bwd(
         means: wp.array(dtype=wp.vec3),
@@ -96,6 +106,8 @@ def _callables(C: int):
         width: int,
         height: int,
         eps2d: float,
+        composite: int,
+        threads: int,
         v_means: wp.array(dtype=wp.vec3),
         v_quats: wp.array(dtype=wp.vec4),
         v_scales: wp.array(dtype=wp.vec3),
@@ -107,7 +119,8 @@ def _callables(C: int):
         _pl.rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, width, height,
                                eps2d, means2d, conics, depths, radii, out_T, out_last,
                                (int(h[0]), int(h[1])), v_color, v_depth, v_alpha, v_means, v_quats,
-                               v_scales, v_opacities, v_colors, v_viewmat)
+                               v_scales, v_opacities, v_colors, v_viewmat,
+                               composite=_composite_arg(composite), threads=threads or None)
 
     mode = wp.JaxCallableGraphMode.NONE  # the forward reads the intersection count on the host
     return (wp.jax_callable(fwd, num_outputs=10, graph_mode=mode, vmap_method="sequential"),
@@ -125,6 +138,8 @@ class _Cfg(NamedTuple):
     far: float
     eps2d: float
     validate: bool
+    composite: int = 0  # 0: default, else index into _COMPOSITES + 1
+    threads: int = 0  # 0: default
 
 
 def _fwd_call(cfg: _Cfg, means, quats, scales, opacities, colors, viewmat, K):
@@ -132,7 +147,7 @@ def _fwd_call(cfg: _Cfg, means, quats, scales, opacities, colors, viewmat, K):
     HW = cfg.width * cfg.height
     fwd, _ = _callables(C)
     outs = fwd(means, quats, scales, opacities, colors, viewmat[None], K[None],
-               cfg.width, cfg.height, cfg.near, cfg.far, cfg.eps2d, int(cfg.validate),
+               cfg.width, cfg.height, cfg.near, cfg.far, cfg.eps2d, int(cfg.validate), cfg.composite, cfg.threads,
                output_dims={"out_color": (HW,), "out_depth": (HW,), "out_T": (HW,), "out_last": (HW,),
                             "means2d": (N,), "conics": (N,), "depths": (N,), "radii": (N,),
                             "n_isect": (1,), "handle": (2,)})
@@ -171,7 +186,7 @@ def _core_bwd(cfg: _Cfg, res, cts):
         means, quats, scales, opacities, colors, viewmat[None], K[None], means2d, conics, depths,
         radii, T, last, handle, v_color.reshape(HW, C).astype(jnp.float32),
         v_depth.reshape(HW).astype(jnp.float32), v_alpha.reshape(HW).astype(jnp.float32),
-        cfg.width, cfg.height, cfg.eps2d,
+        cfg.width, cfg.height, cfg.eps2d, cfg.composite, cfg.threads,
         output_dims={"v_means": (N,), "v_quats": (N,), "v_scales": (N,), "v_opacities": (N,),
                      "v_colors": (N,), "v_viewmat": (16,)})
     return (v_means, v_quats, v_scales, v_opac, v_colors, v_vm.reshape(4, 4), jnp.zeros_like(K))
@@ -215,6 +230,15 @@ def _check_values(name: str, x, *, nonneg: bool = False, unit: bool = False) -> 
         raise ValueError(f"{name} must lie in [0, 1] (got range [{a.min():g}, {a.max():g}])")
 
 
+def _check_run_options(composite, threads) -> tuple[int, int]:
+    """(composite code, threads code) for :class:`_Cfg`; 0 means "the default"."""
+    if composite is not None and composite not in _COMPOSITES:
+        raise ValueError(f"composite must be one of {_COMPOSITES} or None, got {composite!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1):
+        raise ValueError(f"threads must be a positive integer or None, got {threads!r}")
+    return (0 if composite is None else _COMPOSITES.index(composite) + 1), (0 if threads is None else int(threads))
+
+
 def _check_camera(viewmat, K) -> None:
     if _is_concrete(viewmat):
         v = np.asarray(viewmat)
@@ -252,6 +276,8 @@ def rasterize(
     eps2d: float = 0.3,
     backgrounds: Any = None,
     validate: bool = True,
+    composite: str | None = None,
+    threads: int | None = None,
 ) -> RasterOutput:
     """Render 3-D Gaussians with the tile rasterizer (gsplat 1.5 / Inria 3DGS rules).
 
@@ -273,6 +299,12 @@ def rasterize(
         eps2d: low-pass added to the 2-D covariance diagonal, in px^2.
         backgrounds: optional (C,) or (B, C) colour composited behind the Gaussians.
         validate: check values (NaN/Inf, ranges, K) on the device when inputs are traced.
+        composite: compositing kernel, "tile" (one thread per 16x16 tile walking exact ellipse
+            spans; the CPU default) or "pixel" (one thread per pixel; the CUDA default). Both give
+            the same images and gradients. None: the default, which ``SPLATSEARCH_COMPOSITE``
+            may set (see :mod:`splatsearch.kernels.config`).
+        threads: CPU worker threads (>= 1); None: the usable cores, or ``SPLATSEARCH_THREADS``.
+            Ignored on CUDA.
 
     Returns:
         :class:`RasterOutput` ``(image, depth, alpha, meta)``; see its docstring for shapes.
@@ -295,6 +327,7 @@ def rasterize(
         raise ValueError(f"need 0 < near_plane < far_plane, got {near_plane}, {far_plane}")
     if eps2d < 0:
         raise ValueError(f"eps2d must be non-negative, got {eps2d}")
+    composite_code, threads_code = _check_run_options(composite, threads)
 
     means = _as_float("means", means, "(N, 3)", ndim=2)
     if means.shape[1] != 3:
@@ -352,7 +385,8 @@ def rasterize(
     _check_values("colors", colors)
     _check_camera(viewmats, Ks)
 
-    cfg = _Cfg(width, height, float(near_plane), float(far_plane), float(eps2d), bool(validate))
+    cfg = _Cfg(width, height, float(near_plane), float(far_plane), float(eps2d), bool(validate), composite_code,
+               threads_code)
     image, depth, alpha, radii, n_isect = _render_cameras(cfg, render_mode, batched, means, quats, scales, opacities,
                                                           colors, viewmats, Ks, backgrounds)
     meta = {"radii": radii, "n_isect": n_isect, "width": width, "height": height, "tile_size": _pl.TILE_SIZE}
@@ -399,13 +433,14 @@ def rasterize_top_ids(
     far_plane: float = 1e10,
     eps2d: float = 0.3,
     return_weights: bool = False,
+    threads: int | None = None,
 ):
     """Per pixel, the index of the Gaussian that contributes most (largest alpha * T).
 
     Same inputs and rules as :func:`rasterize` for one camera (means (N, 3), quats (N, 4) wxyz or
     None, scales (N, 3) / (N,), opacities (N,), viewmat (4, 4), K (3, 3)). Used to lift 2-D
     detection masks onto the Gaussians behind them; it is not differentiable and runs on the
-    host (numpy in, numpy out).
+    host (numpy in, numpy out). ``threads``: CPU worker threads (None: the default).
 
     Returns:
         (H, W) int32 indices into the input arrays, -1 where no Gaussian contributes; with
@@ -440,6 +475,6 @@ def rasterize_top_ids(
     ids, w = _pl.top_ids(arr(means, dtype=wp.vec3), arr(quats, dtype=wp.vec4), arr(scales, dtype=wp.vec3),
                          arr(opacities, dtype=wp.float32), arr(viewmat[None], dtype=wp.mat44),
                          arr(K[None], dtype=wp.mat33), width, height, float(near_plane), float(far_plane),
-                         float(eps2d))
+                         float(eps2d), threads=_check_run_options(None, threads)[1] or None)
     ids = ids.reshape(height, width)
     return (ids, w.reshape(height, width)) if return_weights else ids
