@@ -258,9 +258,10 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
 class FrameResult:
     """What :meth:`SLAM.process` did with one frame.
 
-    viewmat: the frame's pose estimate (world-to-camera); status: "mapped", "skipped_no_depth",
-    "skipped_bad_pose", "skipped_tracking" (diverged: pose = prediction, not mapped) or
-    "first"; track: the :class:`TrackResult` when tracked; t_track, t_map: seconds;
+    viewmat: the frame's pose estimate (world-to-camera); status: "mapped", "first",
+    "skipped_no_depth" (too little valid depth), "skipped_bad_rgb" (NaN/Inf colour),
+    "skipped_bad_pose" (a given pose that is not finite) or "skipped_tracking" (diverged: the
+    pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when tracked; t_track, t_map: seconds;
     stats: the mapper's update stats when mapped.
     """
 
@@ -354,6 +355,11 @@ class SLAM:
         c = self.mapper.cfg
         if c.min_depth > 0 or np.isfinite(c.max_depth) or c.depth_edge_rel > 0:
             depth = clean_depth(depth, c.min_depth, c.max_depth, c.depth_edge_rel)
+        if rgb.shape != (self.mapper.H, self.mapper.W, 3) or depth.shape != (self.mapper.H, self.mapper.W):
+            raise ValueError(f"expected rgb ({self.mapper.H}, {self.mapper.W}, 3) and depth ({self.mapper.H}, "
+                             f"{self.mapper.W}), got {rgb.shape}, {depth.shape}")
+        if not np.all(np.isfinite(rgb)):
+            return self._finish(FrameResult(i, pose, "skipped_bad_rgb"))
         if np.mean(depth > 0) < self.min_valid_depth:
             return self._finish(FrameResult(i, pose, "skipped_no_depth"))
         tr = None

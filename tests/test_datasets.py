@@ -253,3 +253,58 @@ def test_sim_walk_odometry_drifts_from_ground_truth():
     np.testing.assert_allclose(noisy[0], poses[0])
     err = np.linalg.norm(noisy[:, :2] - poses[:, :2], axis=1)
     assert err[-1] > err[5] > 0  # drift grows
+
+
+def test_map_command_on_a_dataset_writes_ate_trajectory_and_timing(tmp_path, source):
+    from splatsearch.cli import main
+    from splatsearch.trajectory import read_tum
+
+    root = write_folder(tmp_path / "folder", source)
+    out = tmp_path / "out"
+    base = ["map", "--data", str(root), "--downscale", "4", "--iters", "2", "--holdout-every", "0"]
+    assert main(base + ["--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["format"] == "folder" and s["frames_mapped"] == N and not s["tracking"]
+    assert s["ate"]["rmse"] < 1e-4 and s["ate"]["n"] == N  # ground-truth poses: nothing to align away
+    assert s["timing"]["median_map_s"] > 0 and s["timing"]["median_track_s"] is None
+    assert [r["status"] for r in s["timing"]["per_frame"]] == ["first", "mapped", "mapped"]
+    ts, vms = read_tum(str(out / "trajectory.txt"))
+    assert len(ts) == N and len(s["trajectory_tum"]) == N
+    np.testing.assert_allclose(np.linalg.inv(vms[1]), source[1][2], atol=1e-4)
+    out2 = tmp_path / "out2"
+    assert main(base + ["--track", "--track-iters", "3", "--out", str(out2)]) == 0
+    s = json.loads((out2 / "summary.json").read_text())
+    assert s["tracking"] and "ate" in s and s["timing"]["median_track_s"] > 0
+    assert len(s["timing"]["per_frame"]) == N and "train_at_gt_pose" in s
+    # without ground truth, tracking still maps; ATE is not reported
+    os.remove(root / "poses.txt")
+    out3 = tmp_path / "out3"
+    assert main(base + ["--track", "--track-iters", "2", "--out", str(out3)]) == 0
+    s = json.loads((out3 / "summary.json").read_text())
+    assert "ate" not in s and s["frames_mapped"] >= 1
+    assert main(base + ["--out", str(out3)]) == 2  # no poses and no --track: a clear error
+
+
+def test_map_command_bad_paths_give_one_line_errors(tmp_path, capsys):
+    from splatsearch.cli import main
+
+    assert main(["map", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "missing" in err and err.startswith("splatsearch: error:")
+    (tmp_path / "junk").mkdir()
+    assert main(["map", "--data", str(tmp_path / "junk"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "unknown RGB-D layout" in err
+    assert main(["map", "--data", str(tmp_path / "junk"), "--format", "replica", "--out", str(tmp_path / "o")]) == 2
+    assert "results" in capsys.readouterr().err
+
+
+@needs_tum
+def test_map_command_tum_alias(tmp_path):
+    from splatsearch.cli import main
+
+    out = tmp_path / "o"
+    assert main(["map", "--tum", TUM, "--frames", "2", "--downscale", "4", "--iters", "2", "--holdout-every", "0",
+                 "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["format"] == "tum" and s["frames_mapped"] == 2 and s["resolution"] == [160, 120]
