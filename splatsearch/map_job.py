@@ -90,6 +90,8 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
     summary["timing"] = {
         "median_track_s": float(np.median(t_tr)) if t_tr else None,
         "median_map_s": float(np.median(t_map)) if t_map else None,
+        "median_track_cpu_s": float(np.median([r.track.cpu_seconds for r in slam.results if r.track])) if t_tr
+        else None,
         "mean_track_s": float(np.mean(t_tr)) if t_tr else None, "mean_map_s": float(np.mean(t_map)) if t_map else None,
         "per_frame": [{"frame": int(i), "status": r.status, "track_s": round(r.t_track, 4), "map_s": round(r.t_map, 4),
                        "track_status": r.track.status if r.track else None,
