@@ -89,11 +89,6 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
-    import json
-    import os
-    import time
-
-    import numpy as np
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -103,48 +98,74 @@ def _cmd_map(args: argparse.Namespace) -> int:
         TimeRemainingColumn,
     )
 
-    from splatsearch import datasets, io
-    from splatsearch.mapper import Mapper, MapperConfig
+    from splatsearch import datasets
+    from splatsearch.map_job import MapJob, map_sequence
+    from splatsearch.mapper import MapperConfig
+    from splatsearch.slam import TrackerConfig
 
     console = Console()
-    with console.status("loading frames ..."):
-        if args.tum:
-            frames, K, W, H = datasets.load_tum(args.tum, max_frames=args.frames)
-        else:
-            frames, K, W, H, _ = datasets.sim_trajectory(args.seed, args.frames, args.width, args.height)
-    every = max(2, args.holdout_every)
-    held = [f for i, f in enumerate(frames) if i % every == every // 2] if args.holdout_every > 0 else []
-    train = [f for i, f in enumerate(frames) if not (args.holdout_every > 0 and i % every == every // 2)]
-    cfg = MapperConfig(iters=args.iters, stride=args.stride, isotropic=args.isotropic)
-    mapper = Mapper(K, W, H, cfg)
-    os.makedirs(args.out, exist_ok=True)
-    times = []
-    cols = (TextColumn("mapping"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-            TimeRemainingColumn())
+    data = args.data or args.tum
+    fmt = "tum" if (args.tum and not args.data and args.format == "auto") else args.format
     try:
-        with Progress(*cols, console=console) as prog:
-            task = prog.add_task("map", total=len(train), info="")
-            for f in train:
-                t0 = time.perf_counter()
-                st = mapper.update(f.rgb, f.depth, f.viewmat)
-                times.append(time.perf_counter() - t0)
-                prog.update(task, advance=1, info=f"{st['n_gaussians']:,} Gaussians, loss {st['loss']:.4f}")
-    except KeyboardInterrupt:
-        console.print("[yellow]interrupted: saving the map built so far[/yellow]")
-    n_ply = io.save_ply(mapper.map, os.path.join(args.out, "map.ply"))
-    io.save_npz(mapper.map, os.path.join(args.out, "map.npz"), K=K, size=np.array([W, H]))
-    with console.status("evaluating ..."):
-        tr = mapper.evaluate(train[: len(times)])
-        ho = mapper.evaluate(held) if held else None
-    summary = {"frames_mapped": len(times), "gaussians": n_ply, "median_s_per_frame": float(np.median(times)) if times
-               else None, "train": tr, "held_out": ho, "iters_per_frame": cfg.iters, "resolution": [W, H]}
-    io.atomic_write_bytes(os.path.join(args.out, "summary.json"), json.dumps(summary, indent=1).encode())
-    console.print(f"mapped {len(times)} frames, {n_ply:,} Gaussians, median {summary['median_s_per_frame']:.2f} s/frame")
-    for label, ev in (("training views", tr), ("held-out views", ho)):
+        with console.status("loading frames ..."):
+            if data:
+                seq = datasets.load_sequence(data, fmt, max_frames=args.frames, downscale=args.downscale,
+                                             require_poses=not args.track, undistort=not args.no_undistort)
+            else:
+                noise = (args.odometry_noise[0], args.odometry_noise[1]) if args.odometry else None
+                seq = datasets.sim_walk(args.seed, args.frames or 100, args.width, args.height, odometry_noise=noise)
+    except (FileNotFoundError, NotADirectoryError, PermissionError) as e:
+        print(f"splatsearch: error: {e}", file=sys.stderr)
+        return 2
+    if args.odometry and data:
+        raise ValueError("--odometry is for simulator walks; datasets carry no odometry")
+    real = data is not None
+    mcfg = MapperConfig(iters=args.iters, stride=args.stride, isotropic=args.isotropic,
+                        pixel_scale=args.pixel_scale if args.pixel_scale else float(args.stride if real else 1),
+                        first_iters=args.first_iters, min_depth=args.depth_range[0], max_depth=args.depth_range[1],
+                        fill_holes=real and not args.no_fill_holes, initial_capacity=1 << 15 if real else 16384)
+    tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale)
+    job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
+                 refine=args.refine)
+    for note in seq.notes:
+        console.print(f"[dim]{seq.format}: {note}[/dim]")
+    cols = (TextColumn("tracking+mapping" if args.track else "mapping"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("{task.fields[info]}"), TimeRemainingColumn())
+    with Progress(*cols, console=console) as prog:
+        task = prog.add_task("map", total=None, info="")
+
+        def progress(r, done, total):
+            st = r.stats
+            info = (f"track {r.t_track:.2f} s, map {r.t_map:.2f} s, {st.get('n_gaussians', 0):,} Gaussians"
+                    if r.mapped else f"[yellow]frame {r.index}: {r.status}[/yellow]")
+            prog.update(task, total=total, completed=done, info=info)
+            if not r.mapped:
+                prog.console.print(f"[yellow]frame {r.index}: {r.status.replace('_', ' ')}[/yellow]")
+
+        _, summary = map_sequence(seq, job, args.out, progress)
+    if summary["interrupted"]:
+        console.print("[yellow]interrupted: saved the map built so far[/yellow]")
+    tm = summary["timing"]
+    line = (f"mapped {summary['frames_mapped']} of {summary['frames_processed']} frames, "
+            f"{summary['gaussians']:,} Gaussians")
+    if tm["median_map_s"] is not None:
+        line += f"; median per frame: mapping {tm['median_map_s']:.2f} s"
+    if tm["median_track_s"] is not None:
+        line += f", tracking {tm['median_track_s']:.2f} s"
+    console.print(line)
+    for label, key in (("training views", "train"), ("training views at GT poses", "train_at_gt_pose"),
+                       ("held-out views", "held_out")):
+        ev = summary.get(key)
         if ev:
             console.print(f"{label}: PSNR {ev['psnr']:.2f} dB ({ev['psnr_valid']:.2f} dB where depth is valid), "
                           f"SSIM {ev['ssim']:.3f}, depth L1 {100 * ev['depth_l1']:.2f} cm")
-    console.print(f"wrote {args.out}/map.ply, map.npz, summary.json")
+    if "ate" in summary:
+        a = summary["ate"]
+        console.print(f"ATE RMSE {100 * a['rmse']:.2f} cm (mean {100 * a['mean']:.2f}, max {100 * a['max']:.2f} cm, "
+                      f"{a['n']} poses)")
+    if "ate_odometry" in summary:
+        console.print(f"odometry alone: ATE RMSE {100 * summary['ate_odometry']['rmse']:.2f} cm")
+    console.print(f"wrote {args.out}/map.ply, map.npz, trajectory.txt, summary.json")
     return 0
 
 
@@ -298,17 +319,47 @@ def build_parser() -> argparse.ArgumentParser:
             c.add_argument("--episode-seed", type=int, default=0, help="seed of the episode sampler (>= 0)")
         c.set_defaults(func=_cmd_sim)
 
-    m = sub.add_parser("map", help="build a Gaussian map from RGB-D frames and report PSNR / SSIM / depth L1")
-    m.add_argument("--seed", type=int, default=0, help="simulator house seed (when --tum is not given)")
-    m.add_argument("--tum", default=None, help="a TUM RGB-D folder (rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt)")
-    m.add_argument("--frames", type=int, default=100, help="frames to map (at most)")
-    m.add_argument("--width", type=int, default=320, help="simulator image width in pixels (ignored with --tum)")
-    m.add_argument("--height", type=int, default=240, help="simulator image height in pixels (ignored with --tum)")
-    m.add_argument("--iters", type=int, default=15, help="optimisation steps per frame")
-    m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel")
-    m.add_argument("--isotropic", action="store_true", help="isotropic Gaussians (one scale each, as SplaTAM)")
-    m.add_argument("--holdout-every", type=int, default=8, help="hold out one frame in N for evaluation (0: none)")
-    m.add_argument("--out", default="runs/map", help="output directory (map.ply, map.npz, summary.json)")
+    m = sub.add_parser("map", help="build a Gaussian map from RGB-D frames (a dataset or a simulator walk), "
+                                   "optionally tracking the camera; reports PSNR / SSIM / depth L1 and ATE")
+    m.add_argument("--data", default=None, metavar="PATH",
+                   help="an RGB-D dataset folder (default: a simulator walk through house --seed)")
+    m.add_argument("--format", default="auto", choices=["auto", "tum", "replica", "scannet", "7scenes", "folder"],
+                   help="layout of --data (default: auto-detect)")
+    m.add_argument("--tum", default=None, metavar="PATH", help="alias of --data PATH for a TUM RGB-D folder")
+    m.add_argument("--track", action="store_true",
+                   help="estimate camera poses by tracking against the map (first pose: ground truth if known, "
+                        "else identity); ground-truth poses are then used only for ATE")
+    m.add_argument("--odometry", action="store_true",
+                   help="simulator only: use the walk's noisy odometry as the tracking prior (with --track)")
+    m.add_argument("--odometry-noise", type=float, nargs=2, default=(0.05, 0.01), metavar=("TRANS", "ROT"),
+                   help="simulated odometry noise: fraction of distance moved, rad per frame (default 0.05 0.01)")
+    m.add_argument("--seed", type=int, default=0, help="simulator house seed (without --data; default 0)")
+    m.add_argument("--frames", type=int, default=None,
+                   help="use at most this many frames (default: all of --data, 100 for the simulator)")
+    m.add_argument("--downscale", type=int, default=1,
+                   help="divide dataset image size by this integer (2: 640x480 -> 320x240; default 1)")
+    m.add_argument("--no-undistort", action="store_true", help="keep the lens distortion of TUM fr1/fr2 frames")
+    m.add_argument("--width", type=int, default=320, help="simulator image width in pixels (default 320)")
+    m.add_argument("--height", type=int, default=240, help="simulator image height in pixels (default 240)")
+    m.add_argument("--iters", type=int, default=15, help="mapping Adam steps per frame (default 15)")
+    m.add_argument("--first-iters", type=int, default=None,
+                   help="mapping steps for the first frame (default: --iters)")
+    m.add_argument("--refine", type=int, default=0, help="mapping steps over the keyframes after the last frame "
+                                                         "(default 0)")
+    m.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
+    m.add_argument("--track-downscale", type=int, default=1,
+                   help="track on images this many times smaller (faster; default 1)")
+    m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel (default 3)")
+    m.add_argument("--pixel-scale", type=float, default=None,
+                   help="size of new Gaussians in pixels (default: --stride for datasets, 1 for the simulator)")
+    m.add_argument("--depth-range", type=float, nargs=2, default=(0.0, float("inf")), metavar=("MIN", "MAX"),
+                   help="trust depth only within MIN..MAX metres (default: all)")
+    m.add_argument("--no-fill-holes", action="store_true",
+                   help="datasets: do not densify pixels without depth at the neighbouring background depth")
+    m.add_argument("--isotropic", action="store_true", help="spherical Gaussians (one scale each)")
+    m.add_argument("--holdout-every", type=int, default=8,
+                   help="hold out one frame in N for evaluation (0: none; default 8)")
+    m.add_argument("--out", default="runs/map", help="output folder (default runs/map)")
     m.set_defaults(func=_cmd_map)
 
     from splatsearch.agent import VARIANTS

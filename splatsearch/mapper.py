@@ -29,6 +29,7 @@ from splatsearch.gaussians import GaussianMap, append, compact, empty_map, rende
 from splatsearch.kernels.densify import densify
 from splatsearch.losses import l1, mapping_loss, psnr, ssim, ssim_stats
 from splatsearch.rasterization import rasterize
+from splatsearch.rgbd import clean_depth, fill_depth_holes
 
 
 @dataclass
@@ -41,6 +42,13 @@ class MapperConfig:
     ``surface_init``: new Gaussians are flat ellipses in the local surface plane instead of
     spheres (see :func:`splatsearch.kernels.densify.densify`): views far from the training
     cameras (the NVSM's) see closed surfaces instead of stripes.
+
+    Real sensors (see :mod:`splatsearch.rgbd`): ``pixel_scale`` sizes new Gaussians in pixels
+    (``stride`` closes the gaps of a strided grid); ``first_iters`` Adam steps for the first
+    frame (None: ``iters``), which alone must cover the view before tracking can trust it;
+    depth outside [``min_depth``, ``max_depth``] m, and with ``depth_edge_rel`` > 0 at depth
+    edges, is untrusted; ``fill_holes`` densifies pixels without depth at the depth of the
+    background next to them, so that the colour loss fits them instead of leaving them empty.
     """
 
     iters: int = 15
@@ -64,12 +72,22 @@ class MapperConfig:
     submap: bool = True
     submap_margin: float = 0.5
     surface_init: bool = False
+    pixel_scale: float = 1.0
+    first_iters: int | None = None
+    min_depth: float = 0.0
+    max_depth: float = float("inf")
+    depth_edge_rel: float = 0.0
+    fill_holes: bool = False
 
     def validate(self) -> None:
         if self.window_select not in ("overlap", "recent"):
             raise ValueError(f"window_select must be 'overlap' or 'recent', got {self.window_select!r}")
         if not 0.0 <= self.current_frac <= 1.0:
             raise ValueError(f"current_frac must be in [0, 1], got {self.current_frac}")
+        if self.first_iters is not None and self.first_iters < 0:
+            raise ValueError(f"first_iters must be >= 0, got {self.first_iters}")
+        if not self.pixel_scale > 0 or not 0 <= self.min_depth < self.max_depth or self.depth_edge_rel < 0:
+            raise ValueError("pixel_scale > 0, 0 <= min_depth < max_depth and depth_edge_rel >= 0 are required")
         if self.iters < 0 or self.window < 1 or self.keyframe_every < 1 or self.stride < 1:
             raise ValueError("iters >= 0, window >= 1, keyframe_every >= 1 and stride >= 1 are required")
         missing = {"means", "log_scales", "quats", "opacity_logits", "colors"} - set(self.lr)
@@ -79,11 +97,12 @@ class MapperConfig:
 
 @dataclass
 class Frame:
-    """rgb (H, W, 3) float32 [0, 1]; depth (H, W) float32 metres (0 invalid); viewmat (4, 4)."""
+    """rgb (H, W, 3) float32 [0, 1]; depth (H, W) float32 metres (0 invalid); viewmat (4, 4)
+    world-to-camera, or None for a frame without a known pose (to be tracked)."""
 
     rgb: np.ndarray
     depth: np.ndarray
-    viewmat: np.ndarray
+    viewmat: np.ndarray | None
 
 
 _ssim_stats_jit = jax.jit(ssim_stats)
@@ -148,14 +167,18 @@ class Mapper:
         for name, a in (("rgb", rgb), ("depth", depth), ("viewmat", viewmat)):
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"{name} contains NaN or Inf")
+        cfg = self.cfg
+        if cfg.min_depth > 0 or np.isfinite(cfg.max_depth) or cfg.depth_edge_rel > 0:
+            depth = clean_depth(depth, cfg.min_depth, cfg.max_depth, cfg.depth_edge_rel)
         frame = Frame(rgb, depth, viewmat)
         # 1. densify where the map is missing (eq 10)
         if self.map.n_active:
             _, dhat, alpha = self.render(viewmat)
         else:
             dhat, alpha = np.zeros_like(depth), np.zeros_like(depth)
-        new = densify(depth, alpha, dhat, rgb, viewmat, self.K, tau_o=self.cfg.tau_o, k=self.cfg.k,
-                      stride=self.cfg.stride, surface_aligned=self.cfg.surface_init and not self.cfg.isotropic)
+        new = densify(fill_depth_holes(depth) if cfg.fill_holes else depth, alpha, dhat, rgb, viewmat, self.K,
+                      tau_o=cfg.tau_o, k=cfg.k, stride=cfg.stride, pixel_scale=cfg.pixel_scale,
+                      surface_aligned=cfg.surface_init and not cfg.isotropic)
         new.pop("mask")
         self.map, self.opt_state, _ = append(self.map, self.opt_state, new)
         # 2. keyframes
@@ -167,8 +190,9 @@ class Mapper:
         dev = [self._device_frame(f) for f in window]
         # A new frame shows regions that no keyframe constrains yet; a uniform pick over the window
         # would give it ~iters/window steps, so a fixed share of the steps goes to it.
-        n_cur = int(round(self.cfg.current_frac * self.cfg.iters))
-        picks = [len(dev) - 1] * n_cur + [int(i) for i in self.rng.integers(0, len(dev), self.cfg.iters - n_cur)]
+        iters = cfg.first_iters if (self.n_frames == 1 and cfg.first_iters is not None) else cfg.iters
+        n_cur = int(round(cfg.current_frac * iters))
+        picks = [len(dev) - 1] * n_cur + [int(i) for i in self.rng.integers(0, len(dev), iters - n_cur)]
         self.rng.shuffle(picks)
         self._optimise(dev, picks, [f.viewmat for f in window])
         # 4. prune
@@ -369,47 +393,19 @@ def _visible_fraction(pts: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width
     return float(np.mean(front & (u >= 0) & (u < width) & (v >= 0) & (v < height)))
 
 
-# --------------------------------------------------------------------------------------------
-# tracking: pose refinement through the rasterizer's viewmat gradient
-# --------------------------------------------------------------------------------------------
-
-def _so3_exp(w):
-    th2 = jnp.sum(w * w) + 1e-12
-    th = jnp.sqrt(th2)
-    k = jnp.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    a = jnp.where(th2 > 1e-8, jnp.sin(th) / th, 1.0 - th2 / 6)
-    b = jnp.where(th2 > 1e-8, (1 - jnp.cos(th)) / th2, 0.5 - th2 / 24)
-    return jnp.eye(3) + a * k + b * (k @ k)
-
-
 def perturb_viewmat(viewmat, xi):
-    """Left-multiply a world-to-camera matrix by exp(xi), xi = (rotation vector, translation)."""
-    R = _so3_exp(xi[:3])
-    T = jnp.eye(4).at[:3, :3].set(R).at[:3, 3].set(xi[3:])
-    return T @ viewmat
+    """Alias of :func:`splatsearch.slam.perturb_viewmat` (kept for existing callers)."""
+    from splatsearch.slam import perturb_viewmat as _perturb
+
+    return _perturb(viewmat, xi)
 
 
-def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int, *, iters: int = 60,
+def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int, *, iters: int = 40,
           lr: float = 2e-3, sil_thresh: float = 0.99):
-    """Refine a camera pose against the map (SplaTAM tracking loss: L1 depth + 0.5 L1 colour on
-    well-observed pixels). Returns the refined (4, 4) viewmat and the final loss."""
-    rgb = jnp.asarray(rgb, jnp.float32)
-    depth = jnp.asarray(depth, jnp.float32)
-    vm0 = jnp.asarray(init_viewmat, jnp.float32)
-    margs = gmap.render_args()
+    """Refine a pose against the map; returns (viewmat (4, 4), loss). Kept for existing callers:
+    :func:`splatsearch.slam.track` is the full interface (status, divergence checks, timing)."""
+    from splatsearch.slam import track as _track
 
-    def loss_fn(xi):
-        out = rasterize(*margs, perturb_viewmat(vm0, xi), K, width, height, render_mode="RGB+D", validate=False)
-        m = ((out.alpha[..., 0] > sil_thresh) & (depth > 0))[..., None]
-        return l1(out.depth, depth[..., None], m) + 0.5 * l1(out.image, rgb, m)
-
-    tx = optax.adam(lr)
-    xi = jnp.zeros(6, jnp.float32)
-    st = tx.init(xi)
-    vg = jax.jit(jax.value_and_grad(loss_fn))
-    loss = jnp.nan
-    for _ in range(iters):
-        loss, g = vg(xi)
-        upd, st = tx.update(g, st)
-        xi = optax.apply_updates(xi, upd)
-    return np.asarray(perturb_viewmat(vm0, xi)), float(loss)
+    r = _track(gmap, rgb, depth, init_viewmat, K, width, height, iters=iters, lr_rot=lr, lr_trans=lr,
+               sil_thresh=sil_thresh)
+    return r.viewmat, r.loss

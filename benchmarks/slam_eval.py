@@ -1,0 +1,115 @@
+"""Tracking and real-sensor mapping targets of issue 24, one JSON line per run.
+
+    python benchmarks/slam_eval.py tum   [--downscale 2] [--out runs/slam_eval]   # GT poses vs --track
+    python benchmarks/slam_eval.py sim   [--frames 100] [--seed 0]               # noisy odometry walk
+    python benchmarks/slam_eval.py speed [--frames 10]                           # tracking s/frame
+
+``tum``: the 10 shared TUM fr1/xyz frames; (a) ground-truth poses, every frame trained; (b)
+``--track`` from the first pose, every frame trained (ATE, PSNR at the tracked poses and at the
+ground-truth poses); (c) ground-truth poses with every 5th frame held out (held-out PSNR).
+``sim``: a walk through dev house ``--seed`` (never an evaluation house, seeds >= 1000) with
+noisy odometry: ground-truth poses, and tracking with the odometry prior (ATE of the raw odometry
+beside it).
+``speed``: tracking seconds per frame at 320x240 on this machine (load printed beside it).
+
+Every run appends its summary (without per-frame lists) to ``OUT/results.jsonl``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+from splatsearch import datasets
+from splatsearch.map_job import MapJob, map_sequence
+from splatsearch.mapper import MapperConfig
+from splatsearch.slam import TrackerConfig
+
+TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
+
+#: Real-sensor mapping settings (see docs/mapping.md for how they were chosen).
+REAL = dict(iters=30, first_iters=60, stride=1, pixel_scale=1.0, fill_holes=True, initial_capacity=1 << 17)
+SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15)
+
+
+def _load():
+    return os.getloadavg()[0]
+
+
+def _brief(s: dict) -> dict:
+    out = {k: v for k, v in s.items() if k not in ("trajectory_tum", "notes")}
+    t = dict(out["timing"])
+    t.pop("per_frame")
+    out["timing"] = t
+    out["statuses"] = {}
+    for r in s["timing"]["per_frame"]:
+        key = r["status"] + ("/" + r["track_status"] if r["track_status"] else "")
+        out["statuses"][key] = out["statuses"].get(key, 0) + 1
+    return out
+
+
+def _run(name: str, seq, job: MapJob, out: str) -> dict:
+    load0 = _load()
+    t0 = time.perf_counter()
+    _, summary = map_sequence(seq, job, os.path.join(out, name))
+    rec = {"run": name, "load_start": load0, "load_end": _load(), "cpus": os.cpu_count(),
+           "seconds": time.perf_counter() - t0, **_brief(summary)}
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "results.jsonl"), "a") as f:
+        f.write(json.dumps(rec) + "\n")
+    ev = summary.get("train") or {}
+    ho = summary.get("held_out") or {}
+    print(f"{name}: train PSNR {ev.get('psnr', float('nan')):.2f} dB, held-out {ho.get('psnr', float('nan')):.2f}, "
+          f"ATE {100 * summary.get('ate', {}).get('rmse', float('nan')):.2f} cm, "
+          f"track {rec['timing']['median_track_s']} s, map {rec['timing']['median_map_s']} s, "
+          f"load {load0:.1f}->{rec['load_end']:.1f}", flush=True)
+    return rec
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("what", choices=["tum", "sim", "speed"])
+    p.add_argument("--downscale", type=int, default=2, help="TUM image size divisor (default 2: 320x240)")
+    p.add_argument("--frames", type=int, default=100, help="simulator walk length (default 100)")
+    p.add_argument("--seed", type=int, default=0, help="dev house seed (default 0; never >= 1000)")
+    p.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
+    p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
+    p.add_argument("--runs", default=None, help="comma-separated subset of the runs (default: all)")
+    p.add_argument("--out", default="runs/slam_eval")
+    a = p.parse_args(argv)
+    if a.seed >= 1000:
+        p.error("seeds >= 1000 are evaluation houses: never tuned on")
+    tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale)
+    want = None if a.runs is None else set(a.runs.split(","))
+    go = lambda n: want is None or n in want  # noqa: E731
+    if a.what in ("tum", "speed"):
+        if not os.path.isdir(TUM):
+            print(f"skipped: {TUM} not present", file=sys.stderr)
+            return 1
+        seq = datasets.load_sequence(TUM, downscale=a.downscale)
+        if a.what == "speed":
+            _run("tum_track_speed", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
+            return 0
+        if go("tum_gt"):
+            _run("tum_gt", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=0), a.out)
+        if go("tum_track"):
+            _run("tum_track", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
+        if go("tum_gt_holdout"):
+            _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5), a.out)
+    else:
+        seq = datasets.sim_walk(a.seed, a.frames, 320, 240)
+        if go("sim_gt"):
+            _run("sim_gt", seq, MapJob(MapperConfig(**SIM), tcfg, holdout_every=8), a.out)
+        if go("sim_track"):
+            _run("sim_track", seq, MapJob(MapperConfig(**SIM), tcfg, track=True, use_odometry=True, holdout_every=8),
+                 a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,134 @@
+"""Map a whole RGB-D sequence (what ``splatsearch map`` runs): track and/or map every training
+frame, refine, evaluate on training and held-out frames, compute ATE, write the outputs.
+
+Outputs in ``out``: ``map.ply``, ``map.npz``, ``trajectory.txt`` (estimated poses, TUM format),
+``summary.json`` (metrics, ATE, per-frame timing split into tracking and mapping, per-frame
+status, and the trajectory lines); every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from splatsearch import io
+from splatsearch.datasets.base import RGBDSequence
+from splatsearch.mapper import Frame, MapperConfig
+from splatsearch.slam import SLAM, FrameResult, TrackerConfig
+from splatsearch.trajectory import ate, tum_lines, write_tum
+
+
+@dataclass
+class MapJob:
+    """Settings of :func:`map_sequence`.
+
+    track: estimate poses (first pose: ground truth when known, else identity). use_odometry:
+    use the sequence's odometry as the tracking prior. holdout_every: hold out one frame in N
+    (the middle one of each block) for evaluation (0: none). refine: Adam steps over the
+    keyframes after the last frame.
+    """
+
+    mapper: MapperConfig
+    tracker: TrackerConfig
+    track: bool = False
+    use_odometry: bool = False
+    holdout_every: int = 8
+    refine: int = 0
+
+
+def split_holdout(n: int, every: int) -> tuple[list[int], list[int]]:
+    """(training indices, held-out indices) of n frames, holding out the middle of each block of
+    ``every`` frames (every < 2: none held out)."""
+    if every < 2:
+        return list(range(n)), []
+    held = [i for i in range(n) if i % every == every // 2]
+    return [i for i in range(n) if i % every != every // 2], held
+
+
+def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
+                 progress: Callable[[FrameResult, int, int], None] | None = None) -> tuple[SLAM, dict]:
+    """Run ``job`` over ``seq``; returns (the SLAM object, the summary dict). A KeyboardInterrupt
+    stops at the current frame; the summary says so and everything built so far is written."""
+    if not job.track and not seq.has_gt:
+        raise ValueError(f"{seq.path}: no ground-truth poses; map it with tracking (--track)")
+    if job.use_odometry and seq.odometry is None:
+        raise ValueError(f"{seq.path}: the sequence has no odometry")
+    train, held = split_holdout(len(seq), job.holdout_every)
+    slam = SLAM(seq.K, seq.width, seq.height, job.mapper, job.tracker, track=job.track)
+    interrupted = False
+    t_start = time.perf_counter()
+    try:
+        for k, i in enumerate(train):
+            f = seq.frames[i]
+            odo = seq.odometry[i] if job.use_odometry else None
+            given = f.viewmat if (not job.track or k == 0) else None
+            r = slam.process(f.rgb, f.depth, given, odometry=odo)
+            if progress is not None:
+                progress(r, k + 1, len(train))
+        if job.refine:
+            slam.mapper.refine(job.refine)
+    except KeyboardInterrupt:
+        interrupted = True
+    wall = time.perf_counter() - t_start
+    done = train[: len(slam.results)]
+    est = slam.trajectory()
+    summary: dict = {
+        "data": seq.path, "format": seq.format, "resolution": [seq.width, seq.height], "notes": seq.notes,
+        "frames_total": len(seq), "frames_processed": len(done),
+        "frames_mapped": sum(r.mapped for r in slam.results), "interrupted": interrupted,
+        "gaussians": slam.mapper.map.n_active, "tracking": job.track, "odometry_prior": job.use_odometry,
+        "iters_per_frame": job.mapper.iters, "tracking_iters": job.tracker.iters if job.track else 0,
+        "refine_iters": job.refine, "wall_s": wall,
+    }
+    t_tr = [r.t_track for r in slam.results if r.track is not None]
+    t_map = [r.t_map for r in slam.results if r.mapped]
+    summary["timing"] = {
+        "median_track_s": float(np.median(t_tr)) if t_tr else None,
+        "median_map_s": float(np.median(t_map)) if t_map else None,
+        "median_track_cpu_s": float(np.median([r.track.cpu_seconds for r in slam.results if r.track])) if t_tr
+        else None,
+        "mean_track_s": float(np.mean(t_tr)) if t_tr else None, "mean_map_s": float(np.mean(t_map)) if t_map else None,
+        "per_frame": [{"frame": int(i), "status": r.status, "track_s": round(r.t_track, 4), "map_s": round(r.t_map, 4),
+                       "track_status": r.track.status if r.track else None,
+                       "track_loss": _finite(r.track.loss) if r.track else None} for i, r in zip(done, slam.results)],
+    }
+    bad = [(int(i), r.status) for i, r in zip(done, slam.results) if r.status.startswith("skipped")]
+    summary["bad_frames"] = bad
+    # evaluation: training views at the estimated poses (what the map was fitted to), held-out
+    # views at their ground-truth poses (the map lives in the first frame's ground-truth frame)
+    ok = [(i, p) for i, p, r in zip(done, est, slam.results) if r.mapped]
+    summary["train"] = slam.mapper.evaluate([Frame(seq.frames[i].rgb, seq.frames[i].depth, p) for i, p in ok]) \
+        if ok else None
+    if seq.has_gt:
+        gt = seq.gt_viewmats()
+        ok_gt = [i for i, _ in ok if np.all(np.isfinite(gt[i]))]
+        if job.track and ok_gt:
+            summary["train_at_gt_pose"] = slam.mapper.evaluate([seq.frames[i] for i in ok_gt])
+        held_ok = [seq.frames[i] for i in held if np.all(np.isfinite(gt[i]))]
+        summary["held_out"] = slam.mapper.evaluate(held_ok) if held_ok and ok else None
+        if len(done) >= 2:
+            a = ate(est, gt[done])
+            summary["ate"] = {k: a[k] for k in ("rmse", "mean", "median", "max", "n")}
+            if job.use_odometry:
+                o = ate(seq.odometry[done], gt[done])
+                summary["ate_odometry"] = {k: o[k] for k in ("rmse", "mean", "median", "max", "n")}
+    else:
+        summary["held_out"] = None
+    ts = np.asarray(seq.timestamps)[done]
+    summary["trajectory_tum"] = tum_lines(ts, est)
+    if out is not None:
+        os.makedirs(out, exist_ok=True)
+        io.save_ply(slam.mapper.map, os.path.join(out, "map.ply"))
+        io.save_npz(slam.mapper.map, os.path.join(out, "map.npz"), K=seq.K, size=np.array([seq.width, seq.height]))
+        write_tum(os.path.join(out, "trajectory.txt"), ts, est)
+        io.atomic_write_bytes(os.path.join(out, "summary.json"), json.dumps(summary, indent=1).encode())
+    return slam, summary
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None

@@ -1,0 +1,389 @@
+"""Camera tracking against a Gaussian map, and the SLAM front end that tracks then maps.
+
+Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map frozen, the pose of
+the new frame is refined by Adam through the rasterizer's ``viewmat`` gradient. The loss is L1 on
+depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette > ``sil_thresh``)
+with valid observed depth, leaving out pixels whose depth error exceeds ``outlier_k`` times the
+median (depth edges, moving things). The pose update is a left-multiplied se(3) increment
+``exp(xi) @ viewmat`` with xi = (rotation vector in rad, translation in m), both in the camera
+frame; Adam scales each part by its own learning rate, so steps are well conditioned whatever
+the scene's size. All iterations run in one jitted ``lax.scan``; the pose with the lowest loss is
+kept.
+
+A frame is not mapped (and its pose is the motion model's prediction) when its depth is all
+invalid, its given pose is not finite, or tracking diverged: a non-finite loss, a final loss
+above ``diverge_ratio`` times the prediction's, or a correction beyond ``max_rot`` /
+``max_trans``. :class:`SLAM` reports each such frame in its :class:`FrameResult`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from splatsearch.gaussians import GaussianMap, render_args
+from splatsearch.mapper import Mapper, MapperConfig, _bucket, _gather_rows
+from splatsearch.rasterization import rasterize
+from splatsearch.rgbd import clean_depth
+
+
+# --------------------------------------------------------------------------------------------
+# se(3)
+# --------------------------------------------------------------------------------------------
+
+def so3_exp(w):
+    """(3, 3) rotation of a rotation vector ``w`` (3,) in radians (Rodrigues, safe at 0)."""
+    th2 = jnp.sum(w * w) + 1e-12
+    th = jnp.sqrt(th2)
+    k = jnp.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    a = jnp.where(th2 > 1e-8, jnp.sin(th) / th, 1.0 - th2 / 6)
+    b = jnp.where(th2 > 1e-8, (1 - jnp.cos(th)) / th2, 0.5 - th2 / 24)
+    return jnp.eye(3) + a * k + b * (k @ k)
+
+
+def perturb_viewmat(viewmat, xi):
+    """``T(xi) @ viewmat``: a world-to-camera matrix moved by xi = (rotation vector (rad),
+    translation (m)), both expressed in the camera frame."""
+    R = so3_exp(xi[:3])
+    T = jnp.eye(4).at[:3, :3].set(R).at[:3, 3].set(xi[3:])
+    return T @ viewmat
+
+
+def pose_distance(vm_a, vm_b) -> tuple[float, float]:
+    """(rotation angle in rad, camera-centre distance in m) between two world-to-camera poses."""
+    a, b = np.asarray(vm_a, np.float64), np.asarray(vm_b, np.float64)
+    dR = a[:3, :3] @ b[:3, :3].T
+    ang = float(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
+    ca, cb = -a[:3, :3].T @ a[:3, 3], -b[:3, :3].T @ b[:3, 3]
+    return ang, float(np.linalg.norm(ca - cb))
+
+
+# --------------------------------------------------------------------------------------------
+# tracking
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class TrackerConfig:
+    """Tracking settings.
+
+    iters: Adam steps per frame. lr_rot (rad), lr_trans (m): Adam step sizes of the se(3)
+    increment. sil_thresh: silhouette above which a pixel is trusted. w_color: weight of the
+    colour L1 (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are
+    left out (0: keep all). min_valid_frac: fewer trusted pixels than this fraction of the image
+    means the map does not cover the view: tracking is skipped. diverge_ratio, max_rot (rad),
+    max_trans (m): divergence tests (see the module docstring). submap_margin: Gaussians whose
+    means project within this fraction of the image outside the view take part. downscale:
+    track on images this many times smaller (area-averaged colour, subsampled depth): the
+    rasterizer's cost falls with the pixel count.
+    """
+
+    iters: int = 40
+    lr_rot: float = 2e-3
+    lr_trans: float = 2e-3
+    sil_thresh: float = 0.99
+    w_color: float = 0.5
+    outlier_k: float = 10.0
+    min_valid_frac: float = 0.02
+    diverge_ratio: float = 2.0
+    max_rot: float = 0.35
+    max_trans: float = 0.5
+    submap_margin: float = 0.25
+    downscale: int = 1
+
+    def validate(self) -> None:
+        if self.iters < 1:
+            raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
+        if not (self.lr_rot > 0 and self.lr_trans > 0):
+            raise ValueError("lr_rot and lr_trans must be > 0")
+        if self.downscale < 1:
+            raise ValueError(f"downscale must be >= 1, got {self.downscale}")
+        if not 0 < self.sil_thresh < 1:
+            raise ValueError(f"sil_thresh must be in (0, 1), got {self.sil_thresh}")
+
+
+@dataclass
+class TrackResult:
+    """viewmat (4, 4) refined world-to-camera; loss (final best) and loss0 (at the initial
+    pose); valid_frac: trusted pixel fraction at the initial pose; status "ok", "diverged" or
+    "no_overlap"; seconds: wall time; cpu_seconds: process CPU time (all threads), which on a
+    shared machine shows the cost better than the wall time."""
+
+    viewmat: np.ndarray
+    loss: float
+    loss0: float
+    valid_frac: float
+    status: str
+    seconds: float
+    cpu_seconds: float = 0.0
+
+
+_TRACK_FNS: dict = {}
+
+
+def _track_fn(K: np.ndarray, W: int, H: int, cfg: TrackerConfig):
+    key = (np.asarray(K, np.float32).tobytes(), W, H, cfg.iters, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh,
+           cfg.w_color, cfg.outlier_k)
+    if key in _TRACK_FNS:
+        return _TRACK_FNS[key]
+    Kj = jnp.asarray(K, jnp.float32)
+    lrs = jnp.array([cfg.lr_rot] * 3 + [cfg.lr_trans] * 3, jnp.float32)
+    adam = optax.adam(1.0)  # unit steps, scaled per component by ``lrs``
+    sil, w_c, ok_k = cfg.sil_thresh, cfg.w_color, cfg.outlier_k
+
+    def loss_fn(xi, margs, rgb, depth, vm0):
+        out = rasterize(*margs, perturb_viewmat(vm0, xi), Kj, W, H, render_mode="RGB+D", validate=False)
+        d_err = jnp.abs(out.depth[..., 0] - depth)
+        m = (out.alpha[..., 0] > sil) & (depth > 0)
+        if ok_k > 0:
+            med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
+            m = m & (d_err <= ok_k * jnp.where(jnp.isfinite(med), med, jnp.inf))
+        mf = jax.lax.stop_gradient(m.astype(jnp.float32))
+        n = jnp.maximum(mf.sum(), 1.0)
+        c_err = jnp.abs(out.image - rgb).sum(-1)
+        return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n, mf.mean()
+
+    vg = jax.value_and_grad(loss_fn, has_aux=True)
+
+    @jax.jit
+    def run(margs, rgb, depth, vm0):
+        xi0 = jnp.zeros(6, jnp.float32)
+
+        def body(carry, _):
+            xi, st, best_xi, best_loss = carry
+            (loss, _), g = vg(xi, margs, rgb, depth, vm0)
+            better = loss < best_loss  # NaN compares False: a NaN step is never kept
+            best_xi = jnp.where(better, xi, best_xi)
+            best_loss = jnp.where(better, loss, best_loss)
+            g = jnp.where(jnp.isfinite(g), g, 0.0)
+            upd, st = adam.update(g, st)
+            return (xi + upd * lrs, st, best_xi, best_loss), loss
+
+        loss0, frac0 = loss_fn(xi0, margs, rgb, depth, vm0)
+        carry = (xi0, adam.init(xi0), xi0, jnp.asarray(jnp.inf, jnp.float32))
+        (xi, st, best_xi, best_loss), losses = jax.lax.scan(body, carry, None, length=cfg.iters)
+        # the last update has not been scored yet
+        last, _ = loss_fn(xi, margs, rgb, depth, vm0)
+        better = last < best_loss
+        best_xi = jnp.where(better, xi, best_xi)
+        best_loss = jnp.where(better, last, best_loss)
+        return perturb_viewmat(vm0, best_xi), best_loss, loss0, frac0
+
+    if len(_TRACK_FNS) > 8:
+        _TRACK_FNS.pop(next(iter(_TRACK_FNS)))
+    _TRACK_FNS[key] = run
+    return run
+
+
+def visible_rows(gmap: GaussianMap, viewmat, K, W: int, H: int, margin: float) -> np.ndarray:
+    """Rows of active Gaussians whose means project inside the view grown by ``margin``."""
+    n = gmap.n_active
+    means = np.asarray(gmap.means)[:n]
+    vm = np.asarray(viewmat, np.float32)
+    pc = means @ vm[:3, :3].T + vm[:3, 3]
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * pc[:, 0] / z + K[0, 2]
+        v = K[1, 1] * pc[:, 1] / z + K[1, 2]
+    vis = (z > 0.01) & (u > -margin * W) & (u < (1 + margin) * W) & (v > -margin * H) & (v < (1 + margin) * H)
+    return np.nonzero(vis)[0]
+
+
+def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int,
+          config: TrackerConfig | None = None, **overrides) -> TrackResult:
+    """Refine the world-to-camera pose of an RGB-D frame against a frozen map.
+
+    Args:
+        gmap: the map. rgb (H, W, 3) [0, 1]; depth (H, W) metres, 0 = invalid.
+        init_viewmat: (4, 4) initial guess (constant velocity, odometry, ...).
+        K: (3, 3) intrinsics; width, height: image size.
+        config: :class:`TrackerConfig`; keyword ``overrides`` replace its fields (e.g. iters=80).
+
+    Returns:
+        :class:`TrackResult`; on divergence or without overlap its viewmat is ``init_viewmat``.
+    """
+    cfg = config or TrackerConfig()
+    if overrides:
+        cfg = TrackerConfig(**{**cfg.__dict__, **overrides})
+    cfg.validate()
+    t0, c0 = time.perf_counter(), time.process_time()
+    K = np.asarray(K, np.float32)
+    vm0 = np.asarray(init_viewmat, np.float32)
+    if not np.all(np.isfinite(vm0)):
+        raise ValueError("init_viewmat contains NaN or Inf")
+    rows = visible_rows(gmap, vm0, K, width, height, cfg.submap_margin) if gmap.n_active else np.zeros(0, int)
+    rgb = np.asarray(rgb, np.float32)
+    depth = np.asarray(depth, np.float32)
+    if rgb.shape != (height, width, 3) or depth.shape != (height, width):
+        raise ValueError(f"expected rgb ({height}, {width}, 3) and depth ({height}, {width}), got {rgb.shape}, "
+                         f"{depth.shape}")
+    s = cfg.downscale
+    if s > 1:
+        width, height = width // s, height // s
+        rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+        depth = np.ascontiguousarray(depth[s // 2::s, s // 2::s][:height, :width])
+        K = K.copy()
+        K[:2] /= s
+    if len(rows) == 0:
+        return TrackResult(vm0, float("nan"), float("nan"), 0.0, "no_overlap", time.perf_counter() - t0,
+                           time.process_time() - c0)
+    if _bucket(len(rows)) < gmap.capacity:
+        params, active, _, _ = _gather_rows(gmap, None, rows)
+    else:
+        params, active = gmap.params(), gmap.active
+    margs = render_args(params, active, gmap.isotropic)
+    run = _track_fn(K, int(width), int(height), cfg)
+    vm, loss, loss0, frac0 = run(margs, jnp.asarray(rgb, jnp.float32), jnp.asarray(depth, jnp.float32),
+                                 jnp.asarray(vm0))
+    vm, loss, loss0, frac0 = np.asarray(vm), float(loss), float(loss0), float(frac0)
+    status = "ok"
+    if frac0 < cfg.min_valid_frac:
+        status, vm = "no_overlap", vm0
+    elif not (np.isfinite(loss) and np.all(np.isfinite(vm))) or loss > cfg.diverge_ratio * loss0:
+        status, vm = "diverged", vm0
+    else:
+        ang, dist = pose_distance(vm, vm0)
+        if ang > cfg.max_rot or dist > cfg.max_trans:
+            status, vm = "diverged", vm0
+    return TrackResult(vm.astype(np.float32), loss, loss0, frac0, status, time.perf_counter() - t0,
+                       time.process_time() - c0)
+
+
+# --------------------------------------------------------------------------------------------
+# SLAM front end
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class FrameResult:
+    """What :meth:`SLAM.process` did with one frame.
+
+    viewmat: the frame's pose estimate (world-to-camera); status: "mapped", "first",
+    "skipped_no_depth" (too little valid depth), "skipped_bad_rgb" (NaN/Inf colour),
+    "skipped_bad_pose" (a given pose that is not finite) or "skipped_tracking" (diverged: the
+    pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when tracked; t_track, t_map: seconds;
+    stats: the mapper's update stats when mapped.
+    """
+
+    index: int
+    viewmat: np.ndarray
+    status: str
+    track: TrackResult | None = None
+    t_track: float = 0.0
+    t_map: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def mapped(self) -> bool:
+        return self.status in ("mapped", "first")
+
+
+class SLAM:
+    """Track-then-map front end over :class:`~splatsearch.mapper.Mapper`.
+
+    Each frame's pose is predicted (a given pose, the robot's odometry motion applied to the last
+    estimate, or constant velocity), refined by :func:`track` against the current map unless
+    ``track=False``, then the frame is mapped at that pose.
+
+    Args:
+        K (3, 3), width, height: the camera.
+        mapper_config, tracker_config: settings.
+        track: refine poses through the map (False: trust the given poses, as ground truth).
+        min_valid_depth: a frame with fewer valid depth pixels than this fraction is skipped.
+    """
+
+    def __init__(self, K, width: int, height: int, mapper_config: MapperConfig | None = None,
+                 tracker_config: TrackerConfig | None = None, *, track: bool = True,
+                 min_valid_depth: float = 0.01):
+        self.mapper = Mapper(K, width, height, mapper_config)
+        self.tcfg = tracker_config or TrackerConfig()
+        self.tcfg.validate()
+        self.track_enabled = bool(track)
+        self.min_valid_depth = float(min_valid_depth)
+        self.poses: list[np.ndarray] = []  # estimate per processed frame
+        self.results: list[FrameResult] = []
+        self._last_odom: np.ndarray | None = None
+
+    @property
+    def K(self):
+        return self.mapper.K
+
+    def predict(self, odometry=None) -> np.ndarray:
+        """Initial pose guess for the next frame: odometry motion since the previous frame applied
+        to the last estimate when ``odometry`` (the odometry's world-to-camera) is given and the
+        previous frame had one, else constant velocity, else the last pose, else identity."""
+        good = [p for p in self.poses if np.all(np.isfinite(p))]
+        if not good:
+            return np.eye(4, dtype=np.float32)
+        last = good[-1].astype(np.float64)
+        if odometry is not None and self._last_odom is not None:
+            # world-to-camera: vm_k = (vm_k^odom inv(vm_{k-1}^odom)) vm_{k-1}
+            rel = np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom)
+            return (rel @ last).astype(np.float32)
+        if len(good) >= 2:
+            rel = last @ np.linalg.inv(good[-2].astype(np.float64))
+            return (rel @ last).astype(np.float32)
+        return last.astype(np.float32)
+
+    def process(self, rgb, depth, viewmat=None, *, odometry=None) -> FrameResult:
+        """Track (unless disabled) and map one RGB-D frame.
+
+        Args:
+            rgb (H, W, 3) [0, 1]; depth (H, W) metres, 0 = invalid.
+            viewmat: the frame's given pose: with ``track=False`` it is used as is; with tracking,
+                only the first frame's is used (its map frame), later ones are ignored.
+            odometry: optional (4, 4) world-to-camera pose from odometry (any drifting frame: only
+                its motion between frames is used) as the tracking prior.
+        """
+        i = len(self.poses)
+        rgb = np.asarray(rgb, np.float32)
+        depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        first = not any(r.mapped for r in self.results)
+        pred = self.predict(odometry)
+        if odometry is not None and np.all(np.isfinite(odometry)):
+            self._last_odom = np.asarray(odometry, np.float64)
+        res: FrameResult
+        given_ok = viewmat is not None and np.all(np.isfinite(viewmat))
+        if not self.track_enabled or (first and viewmat is not None):
+            if not given_ok:
+                res = FrameResult(i, pred if self.track_enabled else np.full((4, 4), np.nan, np.float32),
+                                  "skipped_bad_pose")
+                return self._finish(res)
+            pose = np.asarray(viewmat, np.float32)
+        else:
+            pose = pred
+        c = self.mapper.cfg
+        if c.min_depth > 0 or np.isfinite(c.max_depth) or c.depth_edge_rel > 0:
+            depth = clean_depth(depth, c.min_depth, c.max_depth, c.depth_edge_rel)
+        if rgb.shape != (self.mapper.H, self.mapper.W, 3) or depth.shape != (self.mapper.H, self.mapper.W):
+            raise ValueError(f"expected rgb ({self.mapper.H}, {self.mapper.W}, 3) and depth ({self.mapper.H}, "
+                             f"{self.mapper.W}), got {rgb.shape}, {depth.shape}")
+        if not np.all(np.isfinite(rgb)):
+            return self._finish(FrameResult(i, pose, "skipped_bad_rgb"))
+        if np.mean(depth > 0) < self.min_valid_depth:
+            return self._finish(FrameResult(i, pose, "skipped_no_depth"))
+        tr = None
+        t_track = 0.0
+        if self.track_enabled and not first:
+            tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg)
+            t_track = tr.seconds
+            if tr.status == "diverged":
+                return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
+            pose = tr.viewmat
+        t0 = time.perf_counter()
+        stats = self.mapper.update(rgb, depth, pose)
+        return self._finish(FrameResult(i, pose, "first" if first else "mapped", tr, t_track,
+                                        time.perf_counter() - t0, stats))
+
+    def _finish(self, res: FrameResult) -> FrameResult:
+        self.poses.append(np.asarray(res.viewmat, np.float32))
+        self.results.append(res)
+        return res
+
+    def trajectory(self) -> np.ndarray:
+        """(N, 4, 4) estimated world-to-camera poses of every processed frame."""
+        return np.stack(self.poses) if self.poses else np.zeros((0, 4, 4), np.float32)

@@ -1,0 +1,129 @@
+"""Tracking against a frozen map, the SLAM front end's motion models and its handling of bad frames."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from splatsearch.mapper import Mapper, MapperConfig
+from splatsearch.slam import SLAM, TrackerConfig, perturb_viewmat, pose_distance, track
+
+
+@pytest.fixture(scope="module")
+def small_walk():
+    from splatsearch.datasets import sim_trajectory
+
+    frames, K, W, H, _ = sim_trajectory(1, 3, 96, 72)
+    return frames, K, W, H
+
+
+@pytest.fixture(scope="module")
+def fitted(small_walk):
+    frames, K, W, H = small_walk
+    f = frames[0]
+    m = Mapper(K, W, H, MapperConfig(iters=20, stride=1, initial_capacity=8192))
+    for _ in range(3):
+        m.update(f.rgb, f.depth, f.viewmat)
+    return m, f
+
+
+def test_tracking_recovers_a_perturbed_pose(fitted):
+    m, f = fitted
+    # 2 cm and about 1 degree off
+    xi = jnp.array([0.01, -0.012, 0.008, 0.012, -0.01, 0.012])
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), xi))
+    ang0, d0 = pose_distance(noisy, f.viewmat)
+    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=80)
+    ang, d = pose_distance(r.viewmat, f.viewmat)
+    assert r.status == "ok" and r.loss < r.loss0 and r.valid_frac > 0.5
+    assert d < 0.005 and ang < np.radians(0.3), (d0, ang0, d, ang)  # a few mm, a fraction of a degree
+
+
+def test_diverging_or_nan_tracking_is_detected(fitted):
+    m, f = fitted
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), jnp.array([0, 0, 0, 0.01, 0, 0.0])))
+    # huge steps throw the pose far away: reported, and the initial guess is returned
+    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=10, lr_rot=0.5, lr_trans=2.0)
+    assert r.status == "diverged"
+    np.testing.assert_array_equal(r.viewmat, noisy.astype(np.float32))
+    # a NaN colour image makes every loss NaN: never kept
+    bad = f.rgb.copy()
+    bad[10:20] = np.nan
+    r = track(m.map, bad, f.depth, noisy, m.K, m.W, m.H, iters=5)
+    assert r.status == "diverged" and np.isfinite(r.viewmat).all()
+    with pytest.raises(ValueError, match="NaN"):
+        track(m.map, f.rgb, f.depth, np.full((4, 4), np.nan), m.K, m.W, m.H)
+
+
+def _finite_map(mapper):
+    p = mapper.map.params()
+    n = mapper.map.n_active
+    return all(np.isfinite(np.asarray(v)[:n]).all() for v in p.values())
+
+
+def test_slam_reports_and_skips_bad_frames(small_walk):
+    frames, K, W, H = small_walk
+    tcfg = TrackerConfig(iters=10)
+    slam = SLAM(K, W, H, MapperConfig(iters=5, first_iters=40, stride=1, initial_capacity=8192), tcfg)
+    r0 = slam.process(frames[0].rgb, frames[0].depth, frames[0].viewmat)
+    assert r0.status == "first" and r0.mapped
+    n0 = slam.mapper.map.n_active
+    # all depth invalid: reported, not mapped, the pose is the prediction
+    r1 = slam.process(frames[1].rgb, np.zeros_like(frames[1].depth))
+    assert r1.status == "skipped_no_depth" and slam.mapper.map.n_active == n0
+    # a tracking step that diverges: reported and skipped, nothing written into the map
+    slam.tcfg = TrackerConfig(iters=10, lr_rot=0.5, lr_trans=2.0)
+    before = {k: np.asarray(v).copy() for k, v in slam.mapper.map.params().items()}
+    r2 = slam.process(frames[1].rgb, frames[1].depth)
+    assert r2.status == "skipped_tracking" and r2.track.status == "diverged" and not r2.mapped
+    for k, v in slam.mapper.map.params().items():
+        np.testing.assert_array_equal(np.asarray(v), before[k])
+    # a NaN colour image: reported and skipped
+    slam.tcfg = tcfg
+    nan_rgb = frames[2].rgb.copy()
+    nan_rgb[0, 0] = np.nan
+    r3 = slam.process(nan_rgb, frames[2].depth)
+    assert r3.status == "skipped_bad_rgb" and slam.mapper.map.n_active == n0
+    # a good frame afterwards is tracked and mapped
+    r4 = slam.process(frames[2].rgb, frames[2].depth)
+    assert r4.status == "mapped" and r4.track.status == "ok", (r4.track, pose_distance(r4.viewmat, frames[2].viewmat))
+    assert r4.t_track > 0 and r4.t_map > 0
+    assert _finite_map(slam.mapper) and len(slam.trajectory()) == 5
+    assert np.isfinite(slam.trajectory()).all()
+    # with given poses, a NaN pose is reported and skipped
+    gt = SLAM(K, W, H, MapperConfig(iters=2, stride=4, initial_capacity=1024), track=False)
+    assert gt.process(frames[0].rgb, frames[0].depth, np.full((4, 4), np.nan)).status == "skipped_bad_pose"
+    assert gt.mapper.map.n_active == 0
+    assert gt.process(frames[0].rgb, frames[0].depth, frames[0].viewmat).status == "first"
+
+
+def test_motion_models():
+    K = np.array([[50.0, 0, 16], [0, 50, 12], [0, 0, 1]], np.float32)
+    slam = SLAM(K, 32, 24, MapperConfig(initial_capacity=16))
+    np.testing.assert_array_equal(slam.predict(), np.eye(4))
+
+    def vm(x, yaw):
+        c, s = np.cos(yaw), np.sin(yaw)
+        m = np.eye(4)
+        m[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+        m[:3, 3] = [x, 0, 0]
+        return np.linalg.inv(m)
+
+    slam.poses = [vm(0.0, 0.0).astype(np.float32), vm(0.1, 0.05).astype(np.float32)]
+    # constant velocity: the last motion again
+    np.testing.assert_allclose(slam.predict(), vm(0.1, 0.05) @ np.linalg.inv(vm(0.0, 0.0)) @ vm(0.1, 0.05),
+                               atol=1e-6)
+    # odometry: its motion between the last two readings, applied to the last estimate
+    slam._last_odom = vm(5.0, 1.0)
+    odo = vm(0.0, 0.3) @ vm(5.0, 1.0)  # the odometry's camera turned 0.3 rad in place
+    pred = slam.predict(odo)
+    ang, dist = pose_distance(pred, slam.poses[-1])
+    assert ang == pytest.approx(0.3, abs=1e-5) and dist < 1e-5
+
+
+def test_bad_tracker_config():
+    with pytest.raises(ValueError):
+        TrackerConfig(iters=0).validate()
+    with pytest.raises(ValueError):
+        TrackerConfig(sil_thresh=1.5).validate()
+    with pytest.raises(ValueError):
+        TrackerConfig(downscale=0).validate()
