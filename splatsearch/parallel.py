@@ -486,7 +486,7 @@ def make_executor(backend: str = "local", workers: int | None = None, *, address
             raise ValueError("--address is for --backend ray")
         if gpus_per_job:
             raise ValueError("--gpus-per-job is for --backend ray")
-        return LocalExecutor(workers or 1, **kw)
+        return LocalExecutor(1 if workers is None else workers, **kw)
     if backend == "ray":
         return RayExecutor(workers, address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, **kw)
     raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
