@@ -381,9 +381,13 @@ class RayExecutor(Executor):
             raise ValueError(f"need cpus_per_job > 0 and gpus_per_job >= 0, got {cpus_per_job}, {gpus_per_job}")
         self._owns_ray = False
         if not ray.is_initialized():
-            init_kw: dict[str, Any] = {"address": address, "include_dashboard": False if address is None else None,
-                                       "logging_level": "warning", "log_to_driver": True}
-            ray.init(**{k: v for k, v in init_kw.items() if v is not None})
+            init_kw: dict[str, Any] = {"address": address, "logging_level": "warning"}
+            if address is None:
+                # Ray runs its workers at nice 15 to keep its own daemons responsive; here the
+                # workers are the whole workload, and at nice 15 on a machine shared with other
+                # programs they get a fraction of the CPU the process pool's workers get
+                init_kw.update(include_dashboard=False, _system_config={"worker_niceness": 0})
+            ray.init(**init_kw)
             self._owns_ray = True
         if workers is None:
             cpus = ray.cluster_resources().get("CPU", 1)

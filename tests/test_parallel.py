@@ -182,3 +182,67 @@ def test_ray_and_local_same_outcomes_and_resume(ray_cluster, tmp_path):
     assert _outcomes(on_ray) == _outcomes(local)
     meta = json.loads((tmp_path / "ray" / "summary.json").read_text())
     assert meta["backend"] == "ray" and meta["workers"] == 2
+
+
+# -- OLiVia-Nav ---------------------------------------------------------------------------------
+
+def test_social_data_jobs_match_build_dataset_and_resume(tmp_path):
+    """`social data` through the executor writes what build_dataset gives; a resume reuses the
+    finished episodes (OUT/parts/) and runs nothing again."""
+    import numpy as np
+
+    from splatsearch.social.olivia_data import Samples, build_dataset
+    from splatsearch.social.olivia_jobs import build_datasets
+
+    kw = dict(every=12, augment=0)
+    sizes = build_datasets(str(tmp_path), ("hallway",), {"train": (0,), "val": (50,)}, executor=LocalExecutor(1), **kw)
+    got = Samples.load(str(tmp_path / "samples_train.npz"))
+    want = build_dataset(("hallway",), (0,), **kw)
+    assert sizes["train"] == len(want) > 0 and sizes["val"] > 0
+    for k in ("image", "points", "goal", "future", "action", "seed", "t"):
+        np.testing.assert_array_equal(getattr(got, k), getattr(want, k))
+    assert got.long == want.long
+    os.remove(tmp_path / "samples_train.npz")
+    ex = LocalExecutor(1)
+    again = build_datasets(str(tmp_path), ("hallway",), {"train": (0,), "val": (50,)}, executor=ex, resume=True, **kw)
+    assert again == sizes and ex.counts.total == 0
+    np.testing.assert_array_equal(Samples.load(str(tmp_path / "samples_train.npz")).image, want.image)
+
+
+def test_social_cli_has_executor_flags():
+    import argparse
+
+    from splatsearch.social.olivia_cli import cmd_data, cmd_eval, register_olivia
+
+    parser = argparse.ArgumentParser()
+    register_olivia(parser.add_subparsers(dest="cmd"))
+    a = parser.parse_args(["data", "--train-seeds", "0-3", "--backend", "ray", "--address", "auto", "--resume"])
+    assert a.func is cmd_data and a.train_seeds == (0, 1, 2, 3) and (a.backend, a.address, a.resume) == ("ray", "auto", True)
+    b = parser.parse_args(["eval", "--workers", "2", "--resume"])
+    assert b.func is cmd_eval and (b.backend, b.workers, b.resume) == ("local", 2, True)
+
+
+@pytest.mark.slow  # OLiVia-Nav's closed loop compiles for about a minute on 2 cores
+def test_table_one_jobs_match_table_one(tmp_path):
+    import jax
+
+    from splatsearch.social import olivia_train as ot
+    from splatsearch.social import sc_clip, tpn, tsm
+    from splatsearch.social.llu import build_text_db
+    from splatsearch.social.olivia import OliviaConfig, OliviaNav
+    from splatsearch.social.olivia_jobs import table_one_parallel
+
+    cfg = OliviaConfig()
+    k = jax.random.split(jax.random.PRNGKey(0), 3)
+    params = {"clip": sc_clip.init_sc_clip(k[0], cfg.clip), "tpn": tpn.init_tpn(k[1], cfg.tpn),
+              "tsm": tsm.init_tsm(k[2], cfg.tsm)}
+    db = build_text_db(params["clip"], ["the space is open you should continue straight",
+                                        "a wall is ahead you should turn left"], cfg.clip)
+    path = str(tmp_path / "olivia.npz")
+    ot.save_checkpoint(path, params, db=db, meta=ot.config_to_meta(cfg))
+    want = ot.table_one(OliviaNav(params, db, cfg), ("hallway",), (1000,), ("dwa",), ("olivia",), log=lambda s: None)
+    got = table_one_parallel(path, ("hallway",), (1000,), ("dwa",), ("olivia",), executor=LocalExecutor(1),
+                             out_dir=str(tmp_path), log=lambda s: None)
+    assert got == want
+    saved = json.loads((tmp_path / "table1_jobs.json").read_text())
+    assert list(saved["jobs"]) == ["hallway/1000"]
