@@ -54,13 +54,13 @@ def register_olivia(social_subparsers) -> None:
     d = social_subparsers.add_parser("data", help="expert episodes + renders -> OUT/samples_{train,val}.npz, in "
                                                   "parallel (then `social train --out OUT` uses them)")
     d.add_argument("--out", default="runs/olivia", help="output directory (default runs/olivia)")
-    d.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS)
-    d.add_argument("--train-seeds", type=_ints, default=tuple(range(6)))
-    d.add_argument("--val-seeds", type=_ints, default=(50,))
+    d.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS, help="comma list (default: Table I's four)")
+    d.add_argument("--train-seeds", type=_ints, default=tuple(range(6)), help="e.g. 0-5 (default) or 0,3")
+    d.add_argument("--val-seeds", type=_ints, default=(50,), help="default 50")
     d.add_argument("--every", type=int, default=5, help="sample an expert state every N sim steps")
     d.add_argument("--augment", type=int, default=1, help="displaced copies per expert state")
     d.add_argument("--resume", action="store_true", help="keep the finished episodes in OUT/parts/, run the rest")
-    d.add_argument("--no-progress", action="store_true")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_args(d, default_workers=None)
     d.set_defaults(func=cmd_data)
 

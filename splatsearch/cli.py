@@ -315,7 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--no-appearance", action="store_true",
                    help="every variant identifies by feature matches alone (as the thesis), without the colour "
                         "cue, which cannot tell identical furniture apart")
-    e.add_argument("--out", default="runs/eval")
+    e.add_argument("--out", default="runs/eval",
+                   help="output folder: results.json (after every episode), summary.json, summary.md")
     e.set_defaults(func=_cmd_eval)
 
     v = sub.add_parser("view", help="open a saved map in the viewer")
