@@ -189,27 +189,41 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     )
 
     from splatsearch.evaluation import eval_title, evaluate, markdown_table
+    from splatsearch.parallel import executor_from_args
 
     console = Console()
     if not console.is_terminal:
         console.width = 120
     variants = args.variants.split(",") if args.variants else None
-    cols = (TextColumn("[bold]eval"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-            TimeElapsedColumn())
+    cols = (TextColumn("[bold]eval"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[counts]}"),
+            TextColumn("{task.fields[info]}"), TimeElapsedColumn())
+    last = {"info": ""}
     with Progress(*cols, console=console) as prog:
-        task = prog.add_task("eval", total=None, info="sampling episodes ...")
+        task = prog.add_task("eval", total=None, counts="", info="sampling episodes ...")
 
-        def progress(r, done, total):
-            prog.update(task, total=total, completed=done,
-                        info=f"last: {r['variant']} ep {r['episode_id']} {'ok' if r['success'] else 'fail'} "
-                             f"{r['steps']} steps {r['wall_time']:.0f} s")
+        def progress(r, c):
+            if r is not None:
+                last["info"] = (f"last: {r['variant']} ep {r['episode_id']} "
+                                f"{'error' if 'error' in r else 'ok' if r['success'] else 'fail'} "
+                                f"{r['steps']} steps {r['wall_time']:.0f} s")
+            prog.update(task, total=c.total, completed=c.done, info=last["info"],
+                        counts=f"running {c.running} · failed {c.failed}" + (f" · retried {c.retried}" if c.retried
+                                                                            else ""))
 
         kw = {} if variants is None else {"variants": variants}
         overrides = {"colour_cue": False} if args.no_colour_cue else None
-        _, summary = evaluate(args.split, args.episodes, args.seed, workers=args.workers, out=args.out,
-                              max_steps=args.max_steps, progress=progress, resume=args.resume,
-                              identical_furniture=args.identical_furniture,
-                              agent_overrides=overrides, **kw)
+        executor = executor_from_args(args)
+        try:
+            _, summary = evaluate(args.split, args.episodes, args.seed, out=args.out, max_steps=args.max_steps,
+                                  progress=progress, resume=args.resume, identical_furniture=args.identical_furniture,
+                                  agent_overrides=overrides, executor=executor, **kw)
+        except KeyboardInterrupt:
+            prog.stop()
+            console.print(f"[yellow]interrupted: every finished episode is in {args.out}/results.json; "
+                          "run again with --resume to finish[/yellow]")
+            raise
+        finally:
+            executor.close()
     console.print(markdown_table(summary, eval_title(args.split, args.episodes, args.seed, args.identical_furniture,
                                                      overrides)))
     console.print(f"wrote {args.out}/results.json, summary.json, summary.md")
@@ -378,12 +392,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("eval", help="SR / SPL of SplatSearch and its ablations")
     e.add_argument("--split", choices=["val", "val-hard"], default="val-hard", help="episode split")
-    e.add_argument("--episodes", type=int, default=50, help="number of episodes (5 per house)")
+    e.add_argument("--episodes", type=int, default=50, help="episodes (5 per house), each run with every variant")
     e.add_argument("--seed", type=int, default=0, help="evaluation seed (selects the houses)")
-    e.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    from splatsearch.parallel import add_executor_args
+
+    add_executor_args(e, default_workers=None)
     e.add_argument("--variants", default=None,
                    help=f"comma-separated subset of {','.join(VARIANTS)} (default: all five)")
-    e.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default: the episode's, 1000)")
+    e.add_argument("--max-steps", type=int, default=None,
+                   help="step cap per episode, in agent actions (default: the episode's, 1000)")
     e.add_argument("--resume", action="store_true",
                    help="keep the finished episodes in OUT/results.json and run only the missing ones")
     e.add_argument("--identical-furniture", action="store_true",
@@ -392,7 +409,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--no-colour-cue", "--no-appearance", dest="no_colour_cue", action="store_true",
                    help="every variant identifies by feature matches alone (as the thesis), without the colour "
                         "cue, which cannot tell identical furniture apart (default: off)")
-    e.add_argument("--out", default="runs/eval", help="output directory (results.json, summary.json, summary.md)")
+    e.add_argument("--out", default="runs/eval",
+                   help="output folder: results.json (after every episode), summary.json, summary.md")
     e.set_defaults(func=_cmd_eval)
 
     v = sub.add_parser("view", help="open a saved map in the viewer")

@@ -2,7 +2,8 @@
 
 Episodes come from procedural houses whose seeds derive from the evaluation seed
 (``house_seeds``), so evaluation houses can be kept apart from those used for tuning. Episodes
-run in worker processes; results are written as JSON and as a markdown table.
+run as independent jobs through :mod:`splatsearch.parallel` (in this process, local worker
+processes, or a Ray cluster); results are written as JSON and as a markdown table.
 """
 
 from __future__ import annotations
@@ -10,12 +11,12 @@ from __future__ import annotations
 import json
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
 from splatsearch.agent import VARIANTS, AgentConfig
 from splatsearch.io import atomic_write_bytes
+from splatsearch.parallel import Counts, Executor, Job, Outcome, make_executor, warm_worker
 
 #: evaluation houses start here, away from the seeds 0..99 used while developing
 EVAL_SEED_BASE = 1000
@@ -43,19 +44,6 @@ def make_eval_episodes(split: str, n: int, seed: int = 0, per_house: int = 5, *,
             e.episode_id = len(eps)
             eps.append(e)
     return eps
-
-
-def _init_worker(threads: int) -> None:
-    """Give each worker process its share of the cores: Warp's CPU bands and XLA's thread pool
-    would otherwise each take every core in every worker and fight over them."""
-    os.environ["SPLATSEARCH_THREADS"] = str(threads)
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "intra_op_parallelism_threads" not in flags:
-        os.environ["XLA_FLAGS"] = (flags + f" --xla_cpu_multi_thread_eigen={str(threads > 1).lower()}"
-                                   f" intra_op_parallelism_threads={threads}").strip()
-    from splatsearch.compile_cache import enable_compile_cache
-
-    enable_compile_cache()
 
 
 def _run_one(args):
@@ -123,38 +111,70 @@ def markdown_table(summary: dict[str, dict], title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIANTS, workers: int = 1,
+#: modules a worker imports (and whose Warp kernels it loads) once, before its first episode
+WORKER_MODULES = ("splatsearch.episode",)
+
+
+def _worker_threads(executor: Executor) -> int:
+    """Cores per worker: this machine's share per local worker, a Ray job's CPU request on Ray."""
+    from splatsearch.kernels.parallel import cpu_threads
+
+    if executor.backend == "ray":
+        return max(1, int(executor.cpus_per_job))
+    return max(1, cpu_threads() // executor.workers)
+
+
+def _error_result(ep, variant: str, outcome: Outcome) -> dict:
+    """The result of an episode whose job did not return (its worker was lost twice)."""
+    return {"episode_id": ep.episode_id, "house_seed": ep.house_seed, "variant": variant, "success": False,
+            "spl": 0.0, "steps": 0, "wall_time": outcome.wall_s, "status": "error", "error": outcome.error}
+
+
+def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIANTS, workers: int | None = 1,
              out: str | None = None, max_steps: int | None = None, progress=None,
              resume: bool = False, identical_furniture: bool = False,
-             agent_overrides: dict | None = None) -> tuple[list[dict], dict]:
+             agent_overrides: dict | None = None, *, backend: str = "local", address: str | None = None,
+             gpus_per_job: float = 0, executor: Executor | None = None) -> tuple[list[dict], dict]:
     """Run every variant on the same ``n`` episodes. Returns (per-episode results, summary).
 
-    Results are saved after every finished episode to ``out/results.json`` (so a crash or Ctrl-C
-    keeps them) and the summary to ``out/summary.json`` and ``out/summary.md``. ``resume`` keeps
-    the results already in ``out/results.json`` (episode id, house and variant must match this
-    run's episodes) and runs only the missing ones. ``identical_furniture`` builds the houses with
-    one model per furniture class, so that only their surroundings tell same-class instances
-    apart (see :func:`splatsearch.sim.make_house`). ``agent_overrides``: :class:`AgentConfig`
-    fields set for every variant (e.g. ``{"colour_cue": False}``: identify by feature matches
-    alone, as the thesis does, since colours cannot tell identical furniture apart); a resume
-    keeps only results run with the same overrides.
+    Each (episode, variant) is one job run by ``executor``, or by one made here from ``backend``
+    (``"local"``: ``workers`` processes on this machine, 1 = in this process; ``"ray"``: Ray
+    actors on the cluster at ``address``, None = a local Ray; ``workers`` None = one per cluster
+    CPU; ``gpus_per_job``: GPUs each Ray worker asks for). See :mod:`splatsearch.parallel`. Each
+    worker warms up once (threads, the JAX compile cache, Warp kernels), not once per episode.
+    The per-episode outcomes do not depend on the backend; ``results`` come back sorted by
+    episode, then variant.
+
+    Results are saved after every finished episode to ``out/results.json`` (atomically, so a
+    crash, a lost worker or Ctrl-C keeps them) and the summary to ``out/summary.json`` and
+    ``out/summary.md``. An episode whose worker dies is run again once, then recorded with
+    ``"status": "error"``. ``resume`` keeps the results already in ``out/results.json`` (episode
+    id, house and variant must match this run's episodes; errors are run again) and runs only the
+    missing ones. ``identical_furniture`` builds the houses with one model per furniture class, so
+    that only their surroundings tell same-class instances apart (see
+    :func:`splatsearch.sim.make_house`). ``agent_overrides``: :class:`AgentConfig` fields set for
+    every variant (e.g. ``{"colour_cue": False}``: identify by feature matches alone, as the
+    thesis does, since colours cannot tell identical furniture apart); a resume keeps only results
+    run with the same overrides. ``progress(result, counts)`` is called when an episode starts
+    (``result`` None) or ends, with the :class:`~splatsearch.parallel.Counts` of this run (done,
+    running, failed; ``total`` includes resumed episodes).
     """
     bad = [v for v in variants if v not in VARIANTS]
     if bad:
         raise ValueError(f"unknown variant(s) {bad}; expected some of {VARIANTS}")
-    if workers < 1:
+    if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     overrides = dict(agent_overrides or {})
     bad = sorted((set(overrides) - set(AgentConfig.__dataclass_fields__)) | ({"variant"} & set(overrides)))
     if bad:
         raise ValueError(f"agent_overrides: not settable AgentConfig fields: {bad}")
     AgentConfig(**overrides)  # invalid values fail here, not in every worker
+    if resume and not out:
+        raise ValueError("resume needs out (the folder with results.json)")
     eps = make_eval_episodes(split, n, seed, identical_furniture=identical_furniture)
     # episode-major: an interrupted run still holds every variant on the same first episodes
     results: list[dict] = []
     if resume:
-        if not out:
-            raise ValueError("resume needs out (the folder with results.json)")
         path = os.path.join(out, "results.json")
         if os.path.exists(path):
             with open(path) as f:
@@ -164,41 +184,45 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIA
                        and "error" not in r and bool(r.get("identical_furniture", False)) == identical_furniture
                        and r.get("agent_overrides", {}) == overrides]
     done = {(r["episode_id"], r["variant"]) for r in results}
-    jobs = [(e.to_json(), v, max_steps, overrides) for e in eps for v in variants if (e.episode_id, v) not in done]
+    todo = {f"{e.episode_id}/{v}": (e, v) for e in eps for v in variants if (e.episode_id, v) not in done}
+    jobs = [Job(k, _run_one, ((e.to_json(), v, max_steps, overrides),)) for k, (e, v) in todo.items()]
     t0 = time.perf_counter()
+    order = {v: i for i, v in enumerate(variants)}
 
     def save():
         if out:
             os.makedirs(out, exist_ok=True)
             atomic_write_bytes(os.path.join(out, "results.json"), json.dumps(results, indent=1).encode())
 
-    total = len(results) + len(jobs)
-    if workers == 1:
-        for j in jobs:
-            results.append(_run_one(j))
+    n_resumed = len(results)
+
+    def shown(c: Counts) -> Counts:
+        return Counts(c.total + n_resumed, c.done + n_resumed, c.running, c.failed, c.retried, c.workers)
+
+    own = executor is None
+    if own:
+        executor = make_executor(backend, workers, address=address, gpus_per_job=gpus_per_job)
+    try:
+        executor.warmup, executor.warmup_args = warm_worker, (_worker_threads(executor), WORKER_MODULES)
+        on_update = (lambda c: progress(None, shown(c))) if progress else None
+        for o in executor.run(jobs, on_update):
+            e, v = todo[o.key]
+            results.append(o.value if o.ok else _error_result(e, v, o))
             save()
             if progress:
-                progress(results[-1], len(results), total)
-    else:
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")  # Warp and XLA hold threads: never fork them
-        from splatsearch.kernels.parallel import cpu_threads
-
-        threads = max(1, cpu_threads() // workers)
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,)) as pool:
-            futs = [pool.submit(_run_one, j) for j in jobs]
-            for f in as_completed(futs):
-                results.append(f.result())
-                save()
-                if progress:
-                    progress(results[-1], len(results), total)
+                progress(results[-1], shown(executor.counts))
+    finally:
+        if own:
+            executor.close()
+    results.sort(key=lambda r: (r["episode_id"], order.get(r["variant"], len(order))))
+    save()
     summary = summarise(results)
     if out:
         meta = {"split": split, "episodes": n, "seed": seed, "identical_furniture": identical_furniture,
                 "agent_overrides": overrides,
                 "house_seeds": sorted({e.house_seed for e in eps}),
-                "workers": workers, "total_wall_s": time.perf_counter() - t0, "summary": summary}
+                "backend": executor.backend, "workers": executor.workers,
+                "total_wall_s": time.perf_counter() - t0, "summary": summary}
         atomic_write_bytes(os.path.join(out, "summary.json"), json.dumps(meta, indent=1).encode())
         atomic_write_bytes(os.path.join(out, "summary.md"),
                            markdown_table(summary, eval_title(split, n, seed, identical_furniture, overrides)).encode())

@@ -1,4 +1,7 @@
-"""``splatsearch social train`` and ``splatsearch social eval`` (OLiVia-Nav).
+"""``splatsearch social data``, ``social train`` and ``social eval`` (OLiVia-Nav).
+
+``data`` and ``eval``'s Table I run as independent jobs on local worker processes or a Ray
+cluster (``--backend``, ``--address``, ``--workers``; see :mod:`splatsearch.parallel`).
 
 Wire into the social CLI with :func:`register_olivia`::
 
@@ -43,8 +46,23 @@ def _scenarios(text: str) -> tuple[str, ...]:
 
 
 def register_olivia(social_subparsers) -> None:
-    """Add the ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
+    """Add the ``data``, ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
+    from splatsearch.parallel import add_executor_args
+
     from ..convoi.scenario_names import TABLE_ONE_SEEDS, THESIS_SCENARIOS
+
+    d = social_subparsers.add_parser("data", help="expert episodes + renders -> OUT/samples_{train,val}.npz, in "
+                                                  "parallel (then `social train --out OUT` uses them)")
+    d.add_argument("--out", default="runs/olivia", help="output directory (default runs/olivia)")
+    d.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS, help="comma list (default: Table I's four)")
+    d.add_argument("--train-seeds", type=_ints, default=tuple(range(6)), help="e.g. 0-5 (default) or 0,3")
+    d.add_argument("--val-seeds", type=_ints, default=(50,), help="default 50")
+    d.add_argument("--every", type=int, default=5, help="sample an expert state every N sim steps")
+    d.add_argument("--augment", type=int, default=1, help="displaced copies per expert state")
+    d.add_argument("--resume", action="store_true", help="keep the finished episodes in OUT/parts/, run the rest")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_executor_args(d, default_workers=None)
+    d.set_defaults(func=cmd_data)
 
     p = social_subparsers.add_parser("train", help="train OLiVia-Nav (SC-CLIP, TPN, TSM) on expert episodes")
     p.add_argument("--out", default="runs/olivia", help="output directory (checkpoints, data cache, summary)")
@@ -82,6 +100,8 @@ def register_olivia(social_subparsers) -> None:
     e.add_argument("--llu-mu", type=float, default=0.05, help="eq 4 temperature")
     e.add_argument("--no-table2", action="store_true", help="skip Table II (the LLU update)")
     e.add_argument("--no-progress", action="store_true", help="no progress bars")
+    e.add_argument("--resume", action="store_true", help="keep Table I's finished jobs in OUT/table1_jobs.json")
+    add_executor_args(e, default_workers=None)
     e.set_defaults(func=cmd_eval)
 
 
@@ -90,6 +110,33 @@ def _progress(disabled: bool):
 
     return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                     TimeElapsedColumn(), disable=disabled)
+
+
+def _job_task(prog, name: str):
+    """A progress task that follows an executor's counts (done / running / failed)."""
+    tid = prog.add_task(name, total=None)
+    return lambda c: prog.update(tid, total=c.total, completed=c.done,
+                                 description=f"{name} (running {c.running}, failed {c.failed})")
+
+
+def cmd_data(args) -> int:
+    from rich.console import Console
+
+    from splatsearch.parallel import executor_from_args
+
+    from .jobs import build_datasets
+
+    if args.every < 1 or args.augment < 0:
+        raise SystemExit("--every must be >= 1 and --augment >= 0")
+    if set(args.train_seeds) & set(args.val_seeds):
+        raise SystemExit("train and validation seeds overlap")
+    with executor_from_args(args) as ex, _progress(args.no_progress) as prog:
+        sizes = build_datasets(args.out, args.scenarios, {"train": args.train_seeds, "val": args.val_seeds},
+                               every=args.every, augment=args.augment, executor=ex, resume=args.resume,
+                               on_update=_job_task(prog, "expert episodes"))
+    Console().print(f"{sizes['train']} train / {sizes['val']} val samples -> {args.out}/samples_train.npz, "
+                    "samples_val.npz")
+    return 0
 
 
 def cmd_train(args) -> int:
@@ -116,8 +163,11 @@ def cmd_train(args) -> int:
 def cmd_eval(args) -> int:
     from rich.console import Console
 
+    from splatsearch.parallel import executor_from_args
+
     from .llu import LLUConfig
-    from .train import format_table_one, format_table_two, load_planner, table_one, table_two
+    from .jobs import table_one_parallel
+    from .train import format_table_one, format_table_two, load_planner, table_two
 
     console = Console()
     planner = load_planner(args.checkpoint)
@@ -132,8 +182,10 @@ def cmd_eval(args) -> int:
         console.print("[yellow]warning: seeds below 100 overlap the default training/validation seeds[/]")
     t0 = time.perf_counter()
     result: dict = {"checkpoint": args.checkpoint, "seeds": list(args.seeds)}
-    with _progress(args.no_progress) as prog:
-        rows = table_one(planner, args.scenarios, args.seeds, baselines, variants, log=console.log, progress=prog)
+    with _progress(args.no_progress) as prog, executor_from_args(args) as ex:
+        rows = table_one_parallel(args.checkpoint, args.scenarios, args.seeds, baselines, variants, executor=ex,
+                                  out_dir=out, resume=args.resume, on_update=_job_task(prog, "Table I"),
+                                  log=console.log)
         result["table1"] = rows
         md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
         if not args.no_table2:

@@ -1,0 +1,168 @@
+"""OLiVia-Nav's long loops as independent jobs for :mod:`splatsearch.parallel` (local processes or
+a Ray cluster): the expert data, one job per (split, scenario, seed), and Table I, one job per
+(scenario, seed).
+
+Nothing is lost: every finished data job is written at once (atomically) to
+``OUT/parts/``, every finished Table I job to ``OUT/table1_jobs.json``; a rerun with ``resume``
+runs only what is missing. The outputs are the same as the sequential
+:func:`~splatsearch.social.olivia.dataset.build_dataset` and
+:func:`~splatsearch.social.olivia.train.table_one` give (same jobs, same order of concatenation
+and averaging).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Sequence
+
+#: modules a worker imports (and whose Warp kernels it loads) once, before its first job
+WORKER_MODULES = ("splatsearch.social.olivia.dataset", "splatsearch.social.olivia.train")
+
+
+def _threads(executor) -> int:
+    from splatsearch.kernels.parallel import cpu_threads
+
+    if executor.backend == "ray":
+        return max(1, int(executor.cpus_per_job))
+    return max(1, cpu_threads() // executor.workers)
+
+
+def _prepare(executor) -> None:
+    from splatsearch.parallel import warm_worker
+
+    executor.warmup, executor.warmup_args = warm_worker, (_threads(executor), WORKER_MODULES)
+
+
+# -- expert data ---------------------------------------------------------------------------------
+
+def data_job(scenario: str, seed: int, every: int, augment: int):
+    """Samples of one expert episode (exactly :func:`build_dataset` on one scenario and seed)."""
+    from .dataset import build_dataset
+
+    return build_dataset([scenario], [seed], every=every, augment=augment)
+
+
+def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Sequence[int]], *, every: int,
+                   augment: int, executor, resume: bool = False, on_update: Callable | None = None) -> dict:
+    """``OUT/samples_{split}.npz`` for every split in ``splits`` (``{"train": seeds, "val": seeds}``),
+    the files ``social train --out OUT`` reuses. Returns ``{split: number of samples}``.
+
+    Raises RuntimeError naming the failed jobs when any failed (the finished parts stay in
+    ``OUT/parts/`` for a ``resume``); ``on_update(counts)`` follows the jobs."""
+    from splatsearch.parallel import Job
+
+    from .dataset import Samples
+
+    parts = os.path.join(out_dir, "parts")
+    os.makedirs(parts, exist_ok=True)
+    order = [(split, name, int(seed)) for split, seeds in splits.items() for name in scenarios for seed in seeds]
+
+    def path(split, name, seed):
+        return os.path.join(parts, f"{split}-{name}-{seed}-every{every}-aug{augment}.npz")
+
+    jobs = [Job(f"{split}/{name}/{seed}", data_job, (name, seed, every, augment)) for split, name, seed in order
+            if not (resume and os.path.exists(path(split, name, seed)))]
+    _prepare(executor)
+    failed = []
+    for o in executor.run(jobs, on_update):
+        split, name, seed = o.key.split("/")
+        if o.ok:
+            o.value.save(path(split, name, int(seed)))
+        else:
+            failed.append(f"{o.key}: {o.error.strip().splitlines()[-1]}")
+    if failed:
+        raise RuntimeError(f"{len(failed)} expert episode(s) failed (run again with --resume to retry them):\n"
+                           + "\n".join(failed))
+    sizes = {}
+    for split in splits:
+        s = Samples.concat([Samples.load(path(sp, n, k)) for sp, n, k in order if sp == split])
+        s.save(os.path.join(out_dir, f"samples_{split}.npz"))
+        sizes[split] = len(s)
+    return sizes
+
+
+# -- Table I -------------------------------------------------------------------------------------
+
+_PLANNERS: dict = {}  # per worker process: (path, size, mtime) -> planner
+
+
+def _planner(checkpoint: str, stamp: tuple):
+    from .train import load_planner
+
+    if not os.path.exists(checkpoint):
+        raise FileNotFoundError(f"no checkpoint {checkpoint!r} on this worker: on a cluster, put it on storage "
+                                "that every node mounts at the same path")
+    key = (checkpoint, *stamp)
+    if key not in _PLANNERS:
+        _PLANNERS.clear()
+        _PLANNERS[key] = load_planner(checkpoint)
+    return _PLANNERS[key]
+
+
+def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, baselines: Sequence[str],
+                  variants: Sequence[str]) -> dict:
+    """Metrics of one (scenario, seed) for Table I: ``{method label: episode metrics}``, in the
+    order :func:`~splatsearch.social.olivia.train.table_one` averages them."""
+    from .planner import VARIANT_LABELS, run_olivia_episode
+    from .train import episode_metrics, run_baseline
+    from ..convoi.scenarios import make_scenario
+
+    planner = _planner(checkpoint, stamp)
+    scn = make_scenario(scenario, seed)
+    ref = run_baseline(scn, "expert")
+    out = {}
+    for v in variants:
+        out[VARIANT_LABELS[v]] = episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref)
+    names = {"dwa": "DWA", "convoi": "CoNVOI+DWA"}
+    for b in baselines:
+        out[names.get(b, b)] = episode_metrics(run_baseline(scn, b), ref)
+    return out
+
+
+def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequence[int], baselines: Sequence[str],
+                       variants: Sequence[str], *, executor, out_dir: str, resume: bool = False,
+                       on_update: Callable | None = None, log: Callable[[str], None] = print) -> list[dict]:
+    """:func:`~splatsearch.social.olivia.train.table_one`'s rows, one job per (scenario, seed).
+    Finished jobs go to ``out_dir/table1_jobs.json`` at once; ``resume`` reuses those run with the
+    same checkpoint (path, size, mtime), baselines and variants. Raises RuntimeError naming the
+    failed jobs (the finished ones stay saved)."""
+    from splatsearch.io import atomic_write_bytes
+    from splatsearch.parallel import Job
+
+    from .train import _mean
+
+    checkpoint = os.path.abspath(checkpoint)
+    st = os.stat(checkpoint)
+    stamp = (st.st_size, int(st.st_mtime_ns))
+    setup = {"checkpoint": checkpoint, "stamp": list(stamp), "baselines": list(baselines), "variants": list(variants)}
+    store = os.path.join(out_dir, "table1_jobs.json")
+    done: dict = {}
+    if resume and os.path.exists(store):
+        with open(store, encoding="utf-8") as f:
+            saved = json.load(f)
+        if saved.get("setup") == setup:
+            done = saved["jobs"]
+    jobs = [Job(f"{name}/{seed}", table_one_job, (checkpoint, stamp, name, int(seed), tuple(baselines), tuple(variants)))
+            for name in scenarios for seed in seeds if f"{name}/{seed}" not in done]
+    _prepare(executor)
+    failed = []
+    for o in executor.run(jobs, on_update):
+        if o.ok:
+            done[o.key] = o.value
+            atomic_write_bytes(store, json.dumps({"setup": setup, "jobs": done}, indent=1).encode())
+        else:
+            failed.append(f"{o.key}: {o.error.strip().splitlines()[-1]}")
+    if failed:
+        raise RuntimeError(f"{len(failed)} Table I job(s) failed (run again with --resume to retry them):\n"
+                           + "\n".join(failed))
+    rows = []
+    for name in scenarios:
+        per: dict[str, list] = {}
+        for seed in seeds:
+            for method, m in done[f"{name}/{seed}"].items():
+                per.setdefault(method, []).append(m)
+        for method, ms in per.items():
+            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms))
+        log(f"Table I: {name} done")
+    return rows
