@@ -1,5 +1,6 @@
 """Viewer helpers, and a headless-chromium test that the splats are really drawn."""
 
+import contextlib
 import shutil
 import socket
 import subprocess
@@ -9,7 +10,15 @@ import time
 import numpy as np
 import pytest
 
-from splatsearch.viewer import SearchViewer, covariances_from, decimate, grid_rgba, scalar_rgba
+from splatsearch.viewer import (
+    SearchViewer,
+    check_port,
+    covariances_from,
+    decimate,
+    framing_camera,
+    grid_rgba,
+    scalar_rgba,
+)
 
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -56,12 +65,105 @@ def test_grid_textures_are_transparent_where_unknown():
     assert vals[0, 0, 3] > 0 and vals[0, 1, 3] == 0
 
 
-@pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium is not installed (.ci/run installs it with apt-get)")
+needs_chromium = pytest.mark.skipif(shutil.which("chromium") is None,
+                                    reason="chromium is not installed (.ci/run installs it with apt-get)")
+
+
+def _house_points(seed: int = 0, turns: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Coloured points (N, 3), (N, 3) of what the robot sees turning on the spot at the start of
+    the house's first episode (80x60 depth back-projected): a map of the house as the demo starts."""
+    from splatsearch import sim
+    from splatsearch.camera import pixels_to_world
+
+    house = sim.make_house(seed)
+    env = sim.HouseEnv(house, width=80, height=60)
+    obs = env.reset(sim.make_episodes(house, 1, "val", seed=seed, env=env)[0].start)
+    pts, cols = [], []
+    for _ in range(turns):
+        rows, c = np.nonzero(obs.frame.depth > 0)
+        pts.append(pixels_to_world(c, rows, obs.frame.depth[rows, c], obs.viewmat, env.K))
+        cols.append(obs.frame.rgb[rows, c])
+        obs = env.step("turn_left")
+    return np.concatenate(pts).astype(np.float32), np.concatenate(cols).astype(np.float32)
+
+
+@contextlib.contextmanager
+def _browser(viewer):
+    """Headless chromium on the viewer's URL; yields the connected clients (empty if none within
+    60 s). The browser is stopped before its profile folder is removed."""
+    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as profile:
+        browser = subprocess.Popen(["chromium", *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
+                                    "--window-size=800,600", viewer.url],
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            t0 = time.time()
+            while not viewer.server.get_clients() and time.time() - t0 < 60:
+                time.sleep(0.2)
+            yield list(viewer.server.get_clients().values())
+        finally:
+            browser.terminate()
+            browser.wait(10)
+
+
+def test_framing_camera_sees_every_point():
+    rng = np.random.default_rng(1)
+    pts = np.c_[rng.uniform(3.5, 10.7, 2000), rng.uniform(5.4, 11.2, 2000), rng.uniform(0, 2.2, 2000)]
+    fov = np.deg2rad(75)
+    pos, look = framing_camera(pts, fov=fov)
+    assert 3.5 < look[0] < 10.7 and 5.4 < look[1] < 11.2
+    fwd = (look - pos) / np.linalg.norm(look - pos)
+    right = np.cross(fwd, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    cam = (pts - pos) @ np.stack([right, down, fwd], 1)
+    assert (cam[:, 2] > 0).all()
+    t = np.tan(fov / 2)  # a square viewport: the tighter of the two half-angles
+    assert (np.abs(cam[:, 0] / cam[:, 2]) < t).mean() > 0.97 and (np.abs(cam[:, 1] / cam[:, 2]) < t).mean() > 0.97
+
+
+def test_port_numbers_are_checked_before_the_server_starts():
+    assert check_port(0) == 0 and check_port(65535) == 65535
+    for bad in (-1, 65536, 99999, "8080", 80.5):
+        with pytest.raises(ValueError, match="port"):
+            check_port(bad)
+    t0 = time.time()
+    with pytest.raises(ValueError, match="0..65535"):
+        SearchViewer(port=99999)  # used to hang forever after viser's thread died
+    assert time.time() - t0 < 30
+
+
+@needs_chromium
+def test_default_view_of_house_0_shows_the_map():
+    """What a user sees on opening the demo's URL: no camera placed by the test."""
+    pts, cols = _house_points(0)
+    viewer = SearchViewer(port=_free_port(), max_z=None)
+    try:
+        n = len(pts)
+        viewer.set_map(pts, np.full((n, 3), 0.04, np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                       np.full(n, 0.9, np.float32), cols)
+        assert not np.allclose(viewer.server.initial_camera.position, (3, 3, 3))  # not viser's default
+        with _browser(viewer) as clients:
+            assert clients, "chromium did not connect to the viewer within 60 s"
+            t0 = time.time()
+            while True:  # the splats arrive in their own time on a loaded machine
+                img = clients[0].camera.get_render(240, 320, timeout=60)
+                drawn = np.abs(img[..., :3].astype(int) - 255).max(-1) > 30  # not the white background
+                if drawn.mean() > 0.2 or time.time() - t0 > 60:
+                    break
+                time.sleep(1.0)
+            np.testing.assert_allclose(clients[0].camera.position, viewer.server.initial_camera.position, atol=0.05)
+    finally:
+        viewer.close()
+    assert drawn.mean() > 0.2, drawn.mean()
+    rows, cols_ = np.nonzero(drawn)  # the map is framed, not pushed into a corner
+    assert 60 < rows.mean() < 180 and 80 < cols_.mean() < 240
+
+
+@needs_chromium
 def test_splats_are_drawn_in_a_headless_browser():
     import viser.transforms as vtf
 
-    viewer = SearchViewer(port=_free_port())
-    browser = None
+    viewer = SearchViewer(port=_free_port(), auto_frame=False)
     try:
         rng = np.random.default_rng(0)
         n = 5000
@@ -73,14 +175,7 @@ def test_splats_are_drawn_in_a_headless_browser():
         occ = np.zeros((40, 40), int)
         occ[:20] = 1  # free cells at y < -1 m, below the red square
         viewer.set_occupancy(occ, (-3.0, -3.0), 0.1)
-        with tempfile.TemporaryDirectory() as profile:
-            browser = subprocess.Popen(["chromium", *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
-                                        "--window-size=800,600", viewer.url],
-                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            t0 = time.time()
-            while not viewer.server.get_clients() and time.time() - t0 < 60:
-                time.sleep(0.2)
-            clients = list(viewer.server.get_clients().values())
+        with _browser(viewer) as clients:
             assert clients, "chromium did not connect to the viewer within 60 s"
             down = np.array([[1, 0, 0], [0, -1, 0], [0, 0, -1]], float)  # camera above, looking down
             # the scene messages arrive in their own time on a loaded machine: render until the
@@ -93,9 +188,6 @@ def test_splats_are_drawn_in_a_headless_browser():
                     break
                 time.sleep(1.0)
     finally:
-        if browser is not None:
-            browser.terminate()
-            browser.wait(10)
         viewer.close()
     red = (img[..., 0] > 150) & (img[..., 1] < 100) & (img[..., 2] < 100)
     # the 2 m square seen from 3 m with a 1 rad vertical fov covers ~19% of the frame, centred
