@@ -87,14 +87,14 @@ class MapViewer:
         if max_splats < 1:
             raise ValueError(f"max_splats must be >= 1, got {max_splats}")
         check_port(port)
-        m, q, s, o, c = (np.asarray(a) for a in gmap.render_args())
         act = np.asarray(gmap.active)
+        if not act.any():
+            raise ValueError("the map has no active Gaussians to show")
+        m, q, s, o, c = (np.asarray(a) for a in gmap.render_args())
         self.means, self.quats, self.scales = m[act].astype(np.float32), q[act].astype(np.float32), s[act]
         self.opacities, self.colors = o[act].astype(np.float32), np.clip(c[act], 0, 1).astype(np.float32)
         self.scales = np.broadcast_to(self.scales.reshape(len(self.means), -1), (len(self.means), 3)).astype(np.float32)
         self.n_total = len(self.means)
-        if self.n_total == 0:
-            raise ValueError("the map has no active Gaussians to show")
         self.render_width = int(render_width)
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
         self.server.gui.configure_theme(show_share_button=False)

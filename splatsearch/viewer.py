@@ -92,13 +92,14 @@ def _upsample(img: np.ndarray, u: int) -> np.ndarray:
     return np.repeat(np.repeat(img, u, 0), u, 1) if u > 1 else img
 
 
-def framing_camera(points: np.ndarray, fov: float = np.deg2rad(75.0), pitch_deg: float = 55.0,
-                   margin: float = 1.15) -> tuple[np.ndarray, np.ndarray]:
+def framing_camera(points: np.ndarray, fov: float = np.deg2rad(75.0), pitch_deg: float = 80.0,
+                   margin: float = 1.3) -> tuple[np.ndarray, np.ndarray]:
     """(position, look_at) of a camera that shows all of ``points`` (N, 3) world metres.
 
     The camera looks down at ``pitch_deg`` below the horizon from the -y side, at the centre of
     the points' robust bounding box (2nd-98th percentile, so a few stray Gaussians do not push
-    it away), far enough that the box's horizontal half-diagonal fits the vertical ``fov`` (rad).
+    it away), far enough that the box's horizontal half-diagonal fits the vertical ``fov`` (rad)
+    and at least 1 m above the highest point, so that walls do not hide the rooms inside them.
     """
     p = np.asarray(points, np.float64).reshape(-1, 3)
     p = p[np.all(np.isfinite(p), 1)]
@@ -107,8 +108,8 @@ def framing_camera(points: np.ndarray, fov: float = np.deg2rad(75.0), pitch_deg:
     lo, hi = (np.percentile(p, [2, 98], axis=0) if len(p) >= 50 else (p.min(0), p.max(0)))
     look = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
     radius = max(0.5 * float(np.hypot(hi[0] - lo[0], hi[1] - lo[1])), 1.0)
-    dist = margin * radius / np.tan(fov / 2)
     pitch = np.deg2rad(pitch_deg)
+    dist = max(margin * radius / np.tan(fov / 2), (hi[2] + 1.0 - look[2]) / np.sin(pitch))
     return look + dist * np.array([0.0, -np.cos(pitch), np.sin(pitch)]), look
 
 

@@ -197,3 +197,57 @@ def test_splats_are_drawn_in_a_headless_browser():
     # the free-space plane (y < -1 m, x < 1 m) is drawn at the bottom of the image, not the top
     grey = _grey(img)
     assert grey[-10:, :200].mean() > 0.5 and grey[:40].mean() < 0.05
+
+
+def test_map_viewer_renders_depth_and_alpha_from_a_browser_camera():
+    from splatsearch.map_viewer import client_camera, render_view
+
+    # two walls of Gaussians facing the camera: red at 2 m (left half), green at 4 m (right half)
+    ys, zs = np.meshgrid(np.linspace(-1, 1, 40), np.linspace(-1, 1, 40))
+    left = np.c_[np.full(1600, -1.0) + 0.9 * (ys.ravel() + 1) / 2, zs.ravel(), np.full(1600, 2.0)]
+    right = np.c_[np.full(1600, 0.1) + 0.9 * (ys.ravel() + 1) / 2, zs.ravel(), np.full(1600, 4.0)]
+    means = np.r_[left, right].astype(np.float32)
+    n = len(means)
+    colors = np.r_[np.tile([1.0, 0, 0], (1600, 1)), np.tile([0, 1.0, 0], (1600, 1))].astype(np.float32)
+    g = (means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), 0.04, np.float32),
+         np.full(n, 0.95, np.float32), colors)
+    # a camera at the origin looking along +z (identity orientation, OpenCV frame like viser's)
+    viewmat, K = client_camera((1, 0, 0, 0), (0, 0, 0), fov=np.deg2rad(60), width=64, height=48)
+    np.testing.assert_allclose(viewmat, np.eye(4), atol=1e-6)
+    assert K[0, 0] == K[1, 1] and K[0, 2] == 32 and K[1, 2] == 24
+    rgb = render_view(g, viewmat, K, 64, 48, "RGB")
+    assert rgb[24, 16, 0] > 200 and rgb[24, 38, 1] > 200  # red left, green right
+    depth = render_view(g, viewmat, K, 64, 48, "depth")
+    assert not np.array_equal(depth[24, 16], depth[24, 38])  # near and far get different colours
+    assert (depth[2, 32] == 0).all() or depth[24, 16].sum() > 0  # empty sky stays black
+    alpha = render_view(g, viewmat, K, 64, 48, "alpha")
+    assert alpha[24, 16, 0] > 200 and alpha[0, 0, 0] < alpha[24, 16, 0]
+    with pytest.raises(ValueError, match="mode"):
+        render_view(g, viewmat, K, 64, 48, "normals")
+
+
+def test_map_viewer_panel_controls_the_splats():
+    from splatsearch.gaussians import empty_map
+    from splatsearch.map_viewer import MapViewer
+
+    rng = np.random.default_rng(0)
+    n = 5000
+    g = empty_map(n)
+    g = g.replace(means=g.means.at[:].set(np.c_[rng.uniform(0, 4, (n, 2)), rng.uniform(0, 2.5, n)].astype(np.float32)),
+                  active=g.active.at[:].set(True))
+    viewer = MapViewer(g, port=_free_port(), max_splats=3000)
+    try:
+        assert viewer.n_total == n and viewer.n_shown == 3000
+        assert "3,000 of 5,000" in viewer.info.content
+        viewer.budget.value = 2000
+        assert viewer.n_shown == 2000
+        viewer.max_z.value = 1.0  # a height cut leaves fewer than the budget
+        assert viewer.n_shown == int((np.asarray(g.means)[:, 2] <= 1.0).sum()) < 2000
+        viewer.mode.value = "depth"
+        assert "rendered here" in viewer.info.content and viewer._splats.visible is False
+        # framed on the map: above it, looking at its middle
+        assert viewer.frame_pos[2] > 2.5 and 0 < viewer.frame_look[0] < 4
+    finally:
+        viewer.close()
+    with pytest.raises(ValueError, match="no active"):
+        MapViewer(empty_map(8), port=_free_port())
