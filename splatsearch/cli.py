@@ -238,6 +238,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="splatsearch", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    from splatsearch._version import __version__
+
+    p.add_argument("--version", action="version", version=f"splatsearch {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     b = sub.add_parser("bench", help="time the rasterizer on the benchmark scenes")
     b.add_argument("--scene", choices=["profile", "small", "all"], default="all")

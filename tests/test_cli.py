@@ -152,3 +152,19 @@ def test_demo_run_folder_is_shareable_and_its_summary_has_one_key_per_fact(tmp_p
         assert s2["steps"] == 2 and (out2 / "map.ply").exists()
     finally:
         os.umask(old)
+
+
+def test_version_has_one_source(capsys):
+    import importlib.metadata
+    import os
+
+    import pytest
+
+    import splatsearch
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"splatsearch {splatsearch.__version__}"
+    assert importlib.metadata.version("splatsearch") == splatsearch.__version__
+    assert os.path.exists(os.path.join(os.path.dirname(splatsearch.__file__), "py.typed"))
