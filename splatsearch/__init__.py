@@ -1,26 +1,42 @@
 """splatsearch: differentiable 3D Gaussian Splatting mapping and object search for robots.
 
 The rasterizer is the foundation: :func:`rasterize` renders Gaussians with Warp kernels on CPU
-or CUDA, under ``jax.jit`` and ``jax.grad``. Its names load on first use, so that importing a
-light submodule (the command-line parser) does not import JAX or Warp.
+or CUDA, under ``jax.jit`` and ``jax.grad``; :func:`rasterization` is the same with gsplat's call
+and return form.
+
+The public names are imported on first use, so that ``import splatsearch.cli`` (and
+``splatsearch --help``) does not pay for loading JAX and Warp.
 """
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
-__all__ = ["RENDER_MODES", "RasterOutput", "rasterize", "rasterize_top_ids", "__version__"]
-_RASTER_NAMES = ("RENDER_MODES", "RasterOutput", "rasterize", "rasterize_top_ids")
+import importlib
+from typing import TYPE_CHECKING
+
+from splatsearch._version import __version__
+
+_LAZY = {
+    "RENDER_MODES": "splatsearch.rasterization",
+    "RasterOutput": "splatsearch.rasterization",
+    "rasterize": "splatsearch.rasterization",
+    "rasterize_top_ids": "splatsearch.rasterization",
+    "rasterization": "splatsearch.gsplat_api",
+}
+
+__all__ = ["RENDER_MODES", "RasterOutput", "rasterization", "rasterize", "rasterize_top_ids", "__version__"]
+
+if TYPE_CHECKING:
+    from splatsearch.gsplat_api import rasterization
+    from splatsearch.rasterization import RENDER_MODES, RasterOutput, rasterize, rasterize_top_ids
 
 
 def __getattr__(name: str):
-    if name in _RASTER_NAMES:
-        from splatsearch import rasterization
-
-        value = getattr(rasterization, name)
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'splatsearch' has no attribute {name!r}")
 
 
-def __dir__():
-    return sorted(set(globals()) | set(_RASTER_NAMES))
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -231,8 +231,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _load_map(path: str):
+    import os
+
     from splatsearch import io
 
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no such map file: {path}")
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"expected a .ply or .npz map file, got the folder {path}")
     if path.endswith(".ply"):
         return io.load_ply(path)
     if path.endswith(".npz"):
@@ -243,12 +249,11 @@ def _load_map(path: str):
 def _cmd_view(args: argparse.Namespace) -> int:
     import time
 
-    from splatsearch.viewer import SearchViewer
+    from splatsearch.map_viewer import MapViewer
 
     gmap = _load_map(args.map)
-    viewer = SearchViewer(port=args.port, max_splats=args.max_splats, max_z=args.max_z)
-    n = viewer.set_gaussian_map(gmap)
-    print(f"showing {n:,} of {gmap.n_active:,} Gaussians at {viewer.url}; press Ctrl-C to exit")
+    viewer = MapViewer(gmap, port=args.port, max_splats=args.max_splats, max_z=args.max_z)
+    print(f"showing {viewer.n_shown:,} of {viewer.n_total:,} Gaussians at {viewer.url}; press Ctrl-C to exit")
     try:
         while True:
             time.sleep(0.5)
@@ -303,6 +308,9 @@ def build_parser() -> argparse.ArgumentParser:
     modules are imported inside its handler."""
     p = argparse.ArgumentParser(prog="splatsearch", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    from splatsearch._version import __version__
+
+    p.add_argument("--version", action="version", version=f"splatsearch {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     b = sub.add_parser("bench", help="time the rasterizer on the benchmark scenes")
     b.add_argument("--scene", choices=["profile", "heavy", "house", "random10k", "small", "all"], default="all",
@@ -382,7 +390,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="house seed (>= 0)")
     d.add_argument("--split", choices=["val", "val-hard"], default="val", help="episode split")
     d.add_argument("--episode", type=int, default=0, help="episode index in the house")
-    d.add_argument("--port", type=int, default=8080, help="viewer TCP port on 127.0.0.1")
+    d.add_argument("--port", type=port_number, default=8080,
+                   help="viewer TCP port on 127.0.0.1, 0..65535; a busy port moves on to the next free one")
     d.add_argument("--no-viewer", action="store_true", help="headless: no viser server")
     d.add_argument("--exit-when-done", action="store_true", help="close the viewer when the episode ends")
     d.add_argument("--variant", choices=VARIANTS, default="splatsearch", help="the full system or one of its ablations")
@@ -392,7 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("eval", help="SR / SPL of SplatSearch and its ablations")
     e.add_argument("--split", choices=["val", "val-hard"], default="val-hard", help="episode split")
-    e.add_argument("--episodes", type=int, default=50, help="episodes (5 per house), each run with every variant")
+    e.add_argument("--episodes", type=positive_int, default=50,
+                   help="episodes (5 per house), each run with every variant, >= 1")
     e.add_argument("--seed", type=int, default=0, help="evaluation seed (selects the houses)")
     from splatsearch.parallel import add_executor_args
 
@@ -415,8 +425,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("view", help="open a saved map in the viewer")
     v.add_argument("map", help="a .ply (INRIA layout) or .npz map")
-    v.add_argument("--port", type=int, default=8080, help="viewer TCP port on 127.0.0.1")
-    v.add_argument("--max-splats", type=int, default=200_000, help="Gaussians sent to the browser at most")
+    v.add_argument("--port", type=port_number, default=8080,
+                   help="viewer TCP port on 127.0.0.1, 0..65535; a busy port moves on to the next free one")
+    v.add_argument("--max-splats", type=positive_int, default=200_000,
+                   help="initial splat budget drawn by the browser in RGB mode")
     v.add_argument("--max-z", type=float, default=None, help="hide Gaussians above this height (m), e.g. ceilings")
     v.set_defaults(func=_cmd_view)
 
@@ -433,6 +445,37 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line(e: BaseException) -> str:
+    """The user-facing message of an exception: its text, or ``strerror: filename`` for an OSError
+    raised by the OS (whose str() is ``[Errno 2] ...``)."""
+    if isinstance(e, OSError) and e.strerror and e.filename:
+        return f"{e.strerror}: {e.filename}"
+    text = str(e).strip() or type(e).__name__
+    return text.splitlines()[0] if "\n" in text else text
+
+
+def positive_int(text: str) -> int:
+    """argparse type of a count that must be >= 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    return n
+
+
+def port_number(text: str) -> int:
+    """argparse type of a TCP port: an integer in 0..65535 (0 lets the OS choose)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be in 0..65535, got {port}")
+    return port
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "repeats", 1) < 1:
@@ -442,8 +485,9 @@ def main(argv: list[str] | None = None) -> int:
     enable_compile_cache()
     try:
         return args.func(args)
-    except ValueError as e:
-        print(f"splatsearch: error: {e}", file=sys.stderr)
+    except (ValueError, OSError) as e:
+        # ordinary mistakes (a bad path, a busy port, a malformed file) get one line, not a traceback
+        print(f"splatsearch: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -74,8 +74,8 @@ class ViewerBridge:
             self.nvsm_seen = agent.nvsm_runs
             lv = agent.last_views
             v.set_novel_views(lv.viewmats, agent.K, lv.rendered, lv.inpainted, lv.best)
-        v.add_match_score(obs.step, info.best_score)
-        v.set_status(f"**step {obs.step}** · {info.status} · frontiers {info.n_frontiers} · objects "
+        v.add_match_score(obs.step + 1, info.best_score)
+        v.set_status(f"**step {obs.step + 1}** · {info.status} · frontiers {info.n_frontiers} · objects "
                      f"{info.n_objects} · best match {info.best_score:.0f}")
         self.steps += 1
         self.seconds += time.perf_counter() - t0
@@ -117,7 +117,8 @@ def run_demo(opts: DemoOptions, console=None) -> dict:
                   f"shown in {opts.out}/goal.png; d* = {ep.d_star:.1f} m")
     import cv2
 
-    cv2.imwrite(os.path.join(opts.out, "goal.png"), (np.clip(goal, 0, 1)[..., ::-1] * 255).astype(np.uint8))
+    ok, png = cv2.imencode(".png", (np.clip(goal, 0, 1)[..., ::-1] * 255).astype(np.uint8))
+    io.atomic_write_bytes(os.path.join(opts.out, "goal.png"), png.tobytes())
     state: dict = {"agent": None, "traj": [], "info": None}
     cap = opts.max_steps or ep.max_steps
     cols = (TextColumn("[bold]search"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
@@ -142,7 +143,7 @@ def run_demo(opts: DemoOptions, console=None) -> dict:
     except KeyboardInterrupt:
         interrupted = True
         console.print("[yellow]interrupted: saving what was done so far[/yellow]")
-    summary = _save_run(opts.out, state, result, interrupted, time.perf_counter() - t_start, bridge)
+    summary = _save_run(opts.out, ep, opts.variant, state, result, interrupted, time.perf_counter() - t_start, bridge)
     if result is not None:
         console.print(f"[bold]{'SUCCESS' if result.success else 'FAILURE'}[/bold]: SPL {result.spl:.3f}, "
                       f"{result.steps} steps, {result.path_length:.1f} m (d* {result.d_star:.1f} m), "
@@ -162,19 +163,32 @@ def run_demo(opts: DemoOptions, console=None) -> dict:
     return summary
 
 
-def _save_run(out: str, state: dict, result, interrupted: bool, wall: float, bridge) -> dict:
+# Every key of a run's summary.json; those the run did not reach are null, and ``reason`` says why.
+SUMMARY_KEYS = ("episode_id", "house_seed", "variant", "interrupted", "reason", "success", "spl", "steps",
+                "path_length", "d_star", "final_distance", "status", "nvsm_runs", "n_objects", "gaussians",
+                "wall_time_s", "episode_time_s", "viewer_ms_per_step")
+
+
+def _save_run(out: str, ep, variant: str, state: dict, result, interrupted: bool, wall: float, bridge) -> dict:
+    """Write map.ply, trajectory.json and summary.json (keys: :data:`SUMMARY_KEYS`) into ``out``."""
     agent = state["agent"]
     n_ply = 0
     if agent is not None and agent.mapper.map.n_active:
         n_ply = io.save_ply(agent.mapper.map, os.path.join(out, "map.ply"))
     io.atomic_write_bytes(os.path.join(out, "trajectory.json"), json.dumps(state["traj"]).encode())
-    summary = {"interrupted": interrupted, "wall_time_s": wall, "gaussians": n_ply,
-               "steps": len(state["traj"]), "objects": len(agent.db) if agent is not None else 0,
-               "viewer_ms_per_step": (1e3 * bridge.seconds / bridge.steps) if bridge is not None and bridge.steps
-               else None}
+    summary = dict.fromkeys(SUMMARY_KEYS)
+    summary.update(episode_id=ep.episode_id, house_seed=ep.house_seed, variant=variant, interrupted=interrupted,
+                   d_star=ep.d_star, steps=len(state["traj"]), gaussians=n_ply, wall_time_s=wall,
+                   n_objects=len(agent.db) if agent is not None else 0,
+                   viewer_ms_per_step=(1e3 * bridge.seconds / bridge.steps) if bridge is not None and bridge.steps
+                   else None)
     if result is not None:
         r = result.to_json()
-        r.pop("trajectory")
-        summary.update(r)
+        summary.update({k: r[k] for k in ("success", "spl", "steps", "path_length", "final_distance", "status",
+                                          "nvsm_runs", "n_objects")})
+        summary["episode_time_s"] = r["wall_time"]
+    else:
+        summary["reason"] = (f"interrupted (Ctrl-C) after {len(state['traj'])} steps: the episode was not judged"
+                             if interrupted else "the episode did not finish")
     io.atomic_write_bytes(os.path.join(out, "summary.json"), json.dumps(summary, indent=1).encode())
     return summary

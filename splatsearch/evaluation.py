@@ -33,8 +33,10 @@ def make_eval_episodes(split: str, n: int, seed: int = 0, per_house: int = 5, *,
     (built with ``identical_furniture``, see :func:`splatsearch.sim.make_house`)."""
     from splatsearch import sim
 
-    if n < 1 or per_house < 1:
-        raise ValueError(f"need n >= 1 and per_house >= 1, got {n}, {per_house}")
+    if n < 1:
+        raise ValueError(f"the number of episodes must be >= 1, got {n}")
+    if per_house < 1:
+        raise ValueError(f"episodes per house must be >= 1, got {per_house}")
     eps = []
     for hs in house_seeds(seed, -(-n // per_house)):
         house = sim.make_house(hs, identical_furniture=identical_furniture)

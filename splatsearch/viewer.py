@@ -92,6 +92,27 @@ def _upsample(img: np.ndarray, u: int) -> np.ndarray:
     return np.repeat(np.repeat(img, u, 0), u, 1) if u > 1 else img
 
 
+def framing_camera(points: np.ndarray, fov: float = np.deg2rad(75.0), pitch_deg: float = 80.0,
+                   margin: float = 1.3) -> tuple[np.ndarray, np.ndarray]:
+    """(position, look_at) of a camera that shows all of ``points`` (N, 3) world metres.
+
+    The camera looks down at ``pitch_deg`` below the horizon from the -y side, at the centre of
+    the points' robust bounding box (2nd-98th percentile, so a few stray Gaussians do not push
+    it away), far enough that the box's horizontal half-diagonal fits the vertical ``fov`` (rad)
+    and at least 1 m above the highest point, so that walls do not hide the rooms inside them.
+    """
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), 1)]
+    if len(p) == 0:
+        return np.array([3.0, -3.0, 4.0]), np.zeros(3)
+    lo, hi = (np.percentile(p, [2, 98], axis=0) if len(p) >= 50 else (p.min(0), p.max(0)))
+    look = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+    radius = max(0.5 * float(np.hypot(hi[0] - lo[0], hi[1] - lo[1])), 1.0)
+    pitch = np.deg2rad(pitch_deg)
+    dist = max(margin * radius / np.tan(fov / 2), (hi[2] + 1.0 - look[2]) / np.sin(pitch))
+    return look + dist * np.array([0.0, -np.cos(pitch), np.sin(pitch)]), look
+
+
 def _pose_of(viewmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(wxyz, position) of a camera from its world-to-camera matrix (OpenCV frame, as viser's)."""
     import viser.transforms as vtf
@@ -109,20 +130,34 @@ class SearchViewer:
         grid_upsample: texture upsampling factor of the grid layers.
         max_z: Gaussians above this height (m) are not sent, so that the ceiling does not hide
             the rooms from the default top-down view; None sends everything.
+        auto_frame: keep the initial camera framing the map and the robot as the map grows
+            (browsers follow until their user moves the camera); see :meth:`frame`.
+
+    Raises:
+        ValueError: ``port`` outside 0..65535 (0: any free port), or ``max_splats`` < 1.
     """
 
     def __init__(self, port: int = 8080, host: str = "127.0.0.1", max_splats: int = 100_000,
-                 grid_upsample: int = 2, max_z: float | None = 2.2, verbose: bool = False):
+                 grid_upsample: int = 2, max_z: float | None = 2.2, verbose: bool = False,
+                 auto_frame: bool = True):
         import viser
 
         if max_splats < 1:
             raise ValueError(f"max_splats must be >= 1, got {max_splats}")
+        check_port(port)
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        self.server.scene.set_up_direction("+z")
+        self._frame: tuple[np.ndarray, np.ndarray] | None = None
+        self._bounds: np.ndarray | None = None
+        self._client_pose: dict[int, np.ndarray] = {}
+        self.server.on_client_connect(lambda client: self._frame_client(client, force=True))
         self.server.gui.configure_theme(show_share_button=False)
         self.host, self.port = host, int(self.server.get_port())
         self.max_splats = int(max_splats)
         self.grid_upsample = int(grid_upsample)
         self.max_z = max_z
+        self.auto_frame = bool(auto_frame)
+        self._robot: np.ndarray | None = None
         self._splats = None
         self._lock = threading.Lock()
         self._step_requested = threading.Event()
@@ -154,6 +189,46 @@ class SearchViewer:
     @property
     def url(self) -> str:
         return f"http://{self.host}:{self.port}"
+
+    def frame(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Point the initial camera ("Reset View") at ``points`` (N, 3) metres, and move every
+        browser whose camera is still where the viewer last put it (a user who moved the
+        camera keeps their view). Returns (position, look_at)."""
+        pos, look = framing_camera(points, fov=self.server.initial_camera.fov)
+        self._frame = (pos, look)
+        ic = self.server.initial_camera
+        ic.up = (0.0, 0.0, 1.0)
+        ic.look_at = look
+        ic.position = pos
+        for client in list(self.server.get_clients().values()):
+            self._frame_client(client)
+        return pos, look
+
+    def _frame_client(self, client, force: bool = False) -> None:
+        if self._frame is None:
+            return
+        last = self._client_pose.get(client.client_id)
+        here = np.asarray(client.camera.position, np.float64)
+        if not force and last is not None and np.linalg.norm(here - last) > 0.05:
+            return  # the user has moved this camera
+        pos, look = self._frame
+        with client.atomic():
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+            client.camera.position = pos  # moves look_at along with it: set look_at after
+            client.camera.look_at = look
+        self._client_pose[client.client_id] = pos
+
+    def _auto_frame(self, means: np.ndarray) -> None:
+        """Frame the map (and the robot) again when its bounding box has grown by > 0.5 m."""
+        pts = means
+        if self._robot is not None:
+            pts = np.concatenate([means, self._robot[None]], 0)
+        if len(pts) == 0:
+            return
+        b = np.concatenate([pts.min(0), pts.max(0)])
+        if self._bounds is None or np.abs(b - self._bounds).max() > 0.5:
+            self._bounds = b
+            self.frame(pts)
 
     def _clear(self, layer: str) -> None:
         # before adding: viser replaces a node of the same name silently, and removing the old
@@ -208,6 +283,8 @@ class SearchViewer:
         else:
             self._splats.set_gaussians(means[keep], cov, rgb, op)
         self._apply_visibility("map")
+        if self.auto_frame:
+            self._auto_frame(means[keep])
         return len(keep)
 
     def set_gaussian_map(self, gmap) -> int:
@@ -295,6 +372,7 @@ class SearchViewer:
     def set_camera(self, viewmat: np.ndarray, K: np.ndarray, rgb: np.ndarray | None = None) -> None:
         """The robot camera (world-to-camera ``viewmat``, intrinsics ``K``) with its RGB image."""
         wxyz, pos = _pose_of(viewmat)
+        self._robot = np.asarray(pos, np.float32)
         K = np.asarray(K, np.float64)
         w, h = 2 * K[0, 2], 2 * K[1, 2]
         fov = 2 * np.arctan(h / (2 * K[1, 1]))
@@ -381,6 +459,19 @@ class SearchViewer:
     def close(self) -> None:
         """Stop the server."""
         self.server.stop()
+
+
+def check_port(port: int) -> int:
+    """``port`` as an int if it is a TCP port number (0..65535; 0 picks a free one).
+
+    viser moves on to the next port when one is busy, but an out-of-range number kills its server
+    thread and leaves the caller waiting forever, so it is refused here first.
+    """
+    if isinstance(port, bool) or not isinstance(port, (int, np.integer)):
+        raise ValueError(f"port must be an integer in 0..65535, got {port!r}")
+    if not 0 <= int(port) <= 65535:
+        raise ValueError(f"port must be in 0..65535, got {port}")
+    return int(port)
 
 
 def _thumb(rgb: np.ndarray, width: int) -> np.ndarray:

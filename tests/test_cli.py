@@ -94,3 +94,113 @@ def test_building_the_parser_imports_neither_jax_nor_warp():
             "print(sorted(m for m in ('jax', 'warp', 'flax', 'cv2') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def _one_line_error(capsys, needle: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert err.startswith("splatsearch: error:") and needle in err, err
+    return err
+
+
+def test_bad_port_is_refused_at_once(capsys):
+    import pytest
+
+    for cmd in (["demo", "--no-viewer"], ["view", "map.ply"]):
+        with pytest.raises(SystemExit) as e:
+            main([*cmd, "--port", "99999"])
+        assert e.value.code == 2
+        assert "port must be in 0..65535" in capsys.readouterr().err
+
+
+def test_missing_or_wrong_paths_are_one_line_errors(tmp_path, capsys):
+    assert main(["view", "/nonexistent.ply"]) == 2
+    _one_line_error(capsys, "/nonexistent.ply")
+    assert main(["view", str(tmp_path)]) == 2
+    _one_line_error(capsys, str(tmp_path))
+    assert main(["export", "/nonexistent.npz", str(tmp_path / "x.ply")]) == 2
+    _one_line_error(capsys, "/nonexistent.npz")
+    assert main(["map", "--tum", str(tmp_path / "missing"), "--out", str(tmp_path / "m")]) == 2
+    _one_line_error(capsys, "missing")
+    assert main(["map", "--tum", str(tmp_path), "--out", str(tmp_path / "m")]) == 2  # a folder without TUM files
+    _one_line_error(capsys, str(tmp_path))
+
+
+def test_eval_rejects_zero_episodes_in_user_terms(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit) as e:
+        main(["eval", "--episodes", "0"])
+    assert e.value.code == 2 and "--episodes: must be >= 1" in capsys.readouterr().err
+
+
+def test_atomic_writes_respect_the_umask(tmp_path):
+    import os
+    import stat
+
+    from splatsearch import io
+
+    old = os.umask(0o027)
+    try:
+        io.atomic_write_bytes(str(tmp_path / "a.json"), b"{}")
+        assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o640
+        os.umask(0o022)
+        io.atomic_write_bytes(str(tmp_path / "b.json"), b"{}")
+        assert stat.S_IMODE((tmp_path / "b.json").stat().st_mode) == 0o644
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp-")]
+    finally:
+        os.umask(old)
+
+
+def test_demo_run_folder_is_shareable_and_its_summary_has_one_key_per_fact(tmp_path, monkeypatch):
+    import os
+    import stat
+
+    from splatsearch import demo, episode
+
+    old = os.umask(0o022)
+    try:
+        out = tmp_path / "run"
+        assert main(["demo", "--no-viewer", "--seed", "3", "--max-steps", "3", "--out", str(out)]) == 0
+        modes = {p.name: stat.S_IMODE(p.stat().st_mode) for p in out.iterdir()}
+        assert set(modes) >= {"goal.png", "map.ply", "trajectory.json", "episode.json", "summary.json"}
+        assert set(modes.values()) == {0o644}, modes
+        summary = json.loads((out / "summary.json").read_text())
+        assert tuple(summary) == demo.SUMMARY_KEYS
+        assert summary["steps"] == 3 and summary["success"] in (True, False) and summary["reason"] is None
+
+        # an interrupted run: the episode is never judged, so its outcome fields are null with the reason
+        real = episode.run_episode
+
+        def interrupted(ep, config=None, *, on_step=None, **kw):
+            def stop_after_two(agent, obs, info):
+                on_step(agent, obs, info)
+                if obs.step >= 1:
+                    raise KeyboardInterrupt
+            return real(ep, config, on_step=stop_after_two, **kw)
+
+        monkeypatch.setattr(episode, "run_episode", interrupted)
+        out2 = tmp_path / "run2"
+        assert main(["demo", "--no-viewer", "--seed", "3", "--max-steps", "6", "--out", str(out2)]) == 0
+        s2 = json.loads((out2 / "summary.json").read_text())
+        assert tuple(s2) == demo.SUMMARY_KEYS and s2["interrupted"] is True
+        assert s2["success"] is None and s2["spl"] is None and "interrupted" in s2["reason"]
+        assert s2["steps"] == 2 and (out2 / "map.ply").exists()
+    finally:
+        os.umask(old)
+
+
+def test_version_has_one_source(capsys):
+    import importlib.metadata
+    import os
+
+    import pytest
+
+    import splatsearch
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"splatsearch {splatsearch.__version__}"
+    assert importlib.metadata.version("splatsearch") == splatsearch.__version__
+    assert os.path.exists(os.path.join(os.path.dirname(splatsearch.__file__), "py.typed"))
