@@ -1,8 +1,8 @@
 """splatsearch: differentiable 3D Gaussian Splatting mapping and object search for robots.
 
 The rasterizer is the foundation: :func:`rasterize` renders Gaussians with Warp kernels on CPU
-or CUDA, under ``jax.jit`` and ``jax.grad``; :func:`rasterization` is the same with gsplat's call
-and return form.
+or CUDA, under ``jax.jit`` and ``jax.grad``; ``splatsearch.gsplat.rasterization`` is the same with
+gsplat's call and return form (``from splatsearch.gsplat import rasterization``).
 
 The public names are imported on first use, so that ``import splatsearch.cli`` (and
 ``splatsearch --help``) does not pay for loading JAX and Warp.
@@ -20,13 +20,11 @@ _LAZY = {
     "RasterOutput": "splatsearch.rasterization",
     "rasterize": "splatsearch.rasterization",
     "rasterize_top_ids": "splatsearch.rasterization",
-    "rasterization": "splatsearch.gsplat_api",
 }
 
-__all__ = ["RENDER_MODES", "RasterOutput", "rasterization", "rasterize", "rasterize_top_ids", "__version__"]
+__all__ = ["RENDER_MODES", "RasterOutput", "rasterize", "rasterize_top_ids", "__version__"]
 
 if TYPE_CHECKING:
-    from splatsearch.gsplat_api import rasterization
     from splatsearch.rasterization import RENDER_MODES, RasterOutput, rasterize, rasterize_top_ids
 
 

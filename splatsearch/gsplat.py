@@ -1,7 +1,8 @@
 """gsplat's ``rasterization()`` call and return form, over splatsearch's rasterizer.
 
 Code written against gsplat 1.x (``render_colors, render_alphas, meta = rasterization(...)``) runs
-on splatsearch by changing the import; :func:`splatsearch.rasterize` stays the native call. The
+on splatsearch by changing the import to ``from splatsearch.gsplat import rasterization``;
+:func:`splatsearch.rasterize` stays the native call. The
 differences from gsplat are listed in :func:`rasterization`'s docstring. Everything here is JAX,
 so ``jax.jit`` and ``jax.grad`` apply, and ``meta["means2d"]`` is differentiable w.r.t. ``means``
 and ``viewmats``.

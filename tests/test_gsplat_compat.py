@@ -1,4 +1,4 @@
-"""splatsearch.rasterization(): gsplat's call and return form over splatsearch.rasterize."""
+"""rasterization(): gsplat's call and return form over splatsearch.rasterize."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +7,7 @@ import pytest
 from scenes import H, W, camera, intrinsics, look_at, random_scene
 
 import splatsearch
-from splatsearch.gsplat_api import SH_C0, spherical_harmonics
+from splatsearch.gsplat import SH_C0, rasterization, spherical_harmonics
 
 
 def _cams():
@@ -19,7 +19,7 @@ def _cams():
 def test_matches_rasterize_and_returns_gsplat_shapes():
     means, quats, scales, opac, colors = random_scene(0)
     vms, Ks = _cams()
-    rc, ra, meta = splatsearch.rasterization(means, quats, scales, opac, colors, vms, Ks, W, H,
+    rc, ra, meta = rasterization(means, quats, scales, opac, colors, vms, Ks, W, H,
                                              render_mode="RGB+ED")
     assert rc.shape == (2, H, W, 4) and ra.shape == (2, H, W, 1)
     ref = splatsearch.rasterize(means, quats, scales, opac, colors, vms, Ks, W, H, render_mode="RGB+ED")
@@ -34,7 +34,7 @@ def test_matches_rasterize_and_returns_gsplat_shapes():
     np.testing.assert_allclose(np.asarray(meta["means2d"][1, :, 0]), u, rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(np.asarray(meta["depths"][1]), cam[:, 2], rtol=1e-5)
     for mode, x in (("RGB", 3), ("D", 1), ("ED", 1), ("RGB+D", 4)):
-        rc, _, _ = splatsearch.rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, render_mode=mode)
+        rc, _, _ = rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, render_mode=mode)
         assert rc.shape == (2, H, W, x), mode
 
 
@@ -43,7 +43,7 @@ def test_per_camera_colors_and_backgrounds():
     vms, Ks = _cams()
     per_cam = np.stack([colors, 1 - colors])
     bg = np.array([[0, 0, 1], [1, 0, 0]], np.float32)
-    rc, _, _ = splatsearch.rasterization(means, quats, scales, opac, per_cam, vms, Ks, W, H, backgrounds=bg)
+    rc, _, _ = rasterization(means, quats, scales, opac, per_cam, vms, Ks, W, H, backgrounds=bg)
     for c in range(2):
         ref = splatsearch.rasterize(means, quats, scales, opac, per_cam[c], vms[c], Ks[c], W, H, render_mode="RGB",
                                     backgrounds=bg[c])
@@ -84,11 +84,11 @@ def test_sh_degree_0_renders_like_plain_colours_and_higher_degrees_depend_on_vie
     vms, Ks = _cams()
     sh = np.zeros((len(means), 16, 3), np.float32)
     sh[:, 0] = (colors - 0.5) / SH_C0
-    a, _, _ = splatsearch.rasterization(means, quats, scales, opac, sh, vms, Ks, W, H, sh_degree=0)
-    b, _, _ = splatsearch.rasterization(means, quats, scales, opac, colors, vms, Ks, W, H)
+    a, _, _ = rasterization(means, quats, scales, opac, sh, vms, Ks, W, H, sh_degree=0)
+    b, _, _ = rasterization(means, quats, scales, opac, colors, vms, Ks, W, H)
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-5)
     sh[:, 1:4] = 0.5
-    c, _, _ = splatsearch.rasterization(means, quats, scales, opac, sh, vms, Ks, W, H, sh_degree=1)
+    c, _, _ = rasterization(means, quats, scales, opac, sh, vms, Ks, W, H, sh_degree=1)
     assert np.abs(np.asarray(c) - np.asarray(b)).max() > 0.01
 
 
@@ -97,7 +97,7 @@ def test_gradients_reach_means_through_image_and_means2d():
     vms, Ks = _cams()
 
     def loss(m):
-        rc, _, meta = splatsearch.rasterization(m, quats, scales, opac, colors, vms, Ks, W, H)
+        rc, _, meta = rasterization(m, quats, scales, opac, colors, vms, Ks, W, H)
         return rc.mean() + 1e-3 * meta["means2d"].mean()
 
     g = jax.grad(loss)(jnp.asarray(means))
@@ -108,9 +108,9 @@ def test_unsupported_gsplat_options_are_named():
     means, quats, scales, opac, colors = random_scene(0)
     vms, Ks = _cams()
     with pytest.raises(NotImplementedError, match="packed"):
-        splatsearch.rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, packed=False)
-    splatsearch.rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, packed=True)  # the default is fine
+        rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, packed=False)
+    rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, packed=True)  # the default is fine
     with pytest.raises(TypeError, match="bogus"):
-        splatsearch.rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, bogus=1)
+        rasterization(means, quats, scales, opac, colors, vms, Ks, W, H, bogus=1)
     with pytest.raises(ValueError, match="viewmats"):
-        splatsearch.rasterization(means, quats, scales, opac, colors, vms[0], Ks, W, H)
+        rasterization(means, quats, scales, opac, colors, vms[0], Ks, W, H)
