@@ -34,7 +34,7 @@ from .composite import composite_kernels, composite_tile_kernels, composite_top_
 from .config import resolve_composite
 from .parallel import launch_split, n_threads_for, run_bands
 from .projection import project_bwd_kernel, project_fwd_kernel
-from .validate import FLAG_MESSAGES, N_FLAGS, validate_camera_kernel, validate_gaussians_kernel
+from .validate import FLAG_MESSAGES, N_FLAGS, InputValueError, validate_camera_kernel, validate_gaussians_kernel
 
 TILE_SIZE = 16
 N_SLOTS = 8
@@ -214,7 +214,7 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
 def _raise_flags(host_flags: np.ndarray) -> None:
     for k in range(N_FLAGS):
         if host_flags[k]:
-            raise ValueError(FLAG_MESSAGES[k])
+            raise InputValueError(FLAG_MESSAGES[k])
 
 
 def _row_bands(width: int, height: int, tile: int, n_threads: int) -> list[tuple[int, int]]:

@@ -24,6 +24,10 @@ F_VIEWMAT = 8
 F_K = 9
 N_FLAGS = 10
 
+class InputValueError(ValueError):
+    """Bad rasterizer input found by the device-side checks (the message names the argument)."""
+
+
 FLAG_MESSAGES = {
     F_MEANS: "means contains NaN or Inf",
     F_QUATS: "quats contains NaN or Inf",

@@ -492,6 +492,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as e:
+        # a failed input check inside a jitted rasterizer call arrives wrapped by XLA
+        if type(e).__name__ == "JaxRuntimeError" and "InputValueError: " in str(e):
+            print(f"splatsearch: error: {str(e).split('InputValueError: ', 1)[1].splitlines()[0]}", file=sys.stderr)
+            return 2
+        raise
 
 
 if __name__ == "__main__":

@@ -44,6 +44,33 @@ class RasterOutput(NamedTuple):
     meta: dict
 
 
+def _quiet_ffi_input_errors() -> None:
+    """Warp's FFI wrapper prints the full traceback of any exception raised inside a callback, and
+    only then does JAX raise its own error. For a failed input check the message is all the user
+    needs, so those tracebacks are dropped (any other exception still prints its traceback). This
+    reaches into Warp's private FFI module; if that moves, the traceback simply prints again."""
+    import builtins
+
+    try:
+        from warp._src.jax import ffi as wffi
+    except ImportError:
+        return
+    if getattr(wffi, "_splatsearch_quiet", False):
+        return
+
+    def _print(*args, **kwargs):
+        text = args[0] if len(args) == 1 and isinstance(args[0], str) else ""
+        if text.startswith("Traceback") and f"{_pl.InputValueError.__name__}: " in text:
+            return
+        builtins.print(*args, **kwargs)
+
+    wffi.print = _print
+    wffi._splatsearch_quiet = True
+
+
+_quiet_ffi_input_errors()
+
+
 # --------------------------------------------------------------------------------------------
 # Warp callbacks, one pair per colour-channel count
 # --------------------------------------------------------------------------------------------

@@ -120,16 +120,20 @@ def test_bad_render_mode_and_planes():
         _call(near_plane=0.0)
 
 
-def test_values_checked_on_device_under_jit():
-    """Under jit the values are tracers; the device-side check reports the same message."""
+def test_values_checked_on_device_under_jit(capfd):
+    """Under jit the values are tracers; the device-side check reports the same message, and it
+    is the first thing printed: no Warp callback traceback before it."""
     g = _good()
     f = jax.jit(lambda m: splatsearch.rasterize(m, g["quats"], g["scales"], g["opacities"], g["colors"],
                                                 g["viewmat"], g["K"], W, H).image)
     m = g["means"].copy()
     assert np.isfinite(np.asarray(f(m))).all()
     m[5, 0] = np.nan
+    capfd.readouterr()
     with pytest.raises(Exception, match="means contains NaN or Inf"):
         jax.block_until_ready(f(m))
+    printed = capfd.readouterr()
+    assert "Traceback" not in printed.out + printed.err
     fs = jax.jit(lambda s: splatsearch.rasterize(g["means"], g["quats"], s, g["opacities"], g["colors"],
                                                  g["viewmat"], g["K"], W, H).image)
     s = g["scales"].copy()
