@@ -33,8 +33,14 @@ IMAGE = (np.random.default_rng(0).random((24, 32, 3))).astype(np.float32)
 
 
 class Stub(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"  # keep-alive, as real API servers
     requests: ClassVar[list] = []
     counts: ClassVar[dict] = {}
+    connections: ClassVar[int] = 0
+
+    def setup(self):
+        Stub.connections += 1
+        super().setup()
 
     def log_message(self, *a):  # keep pytest output clean
         pass
@@ -66,6 +72,16 @@ class Stub(BaseHTTPRequestHandler):
             self._reply(500 if Stub.counts[mode] == 1 else 200, ok)
         elif mode == "bad":
             self._reply(400, json.dumps({"error": "bad request"}))
+        elif mode == "busy":  # rate-limited once, with the wait the server asks for
+            if Stub.counts[mode] == 1:
+                data = b'{"error": "rate limited"}'
+                self.send_response(429)
+                self.send_header("Retry-After", "7")
+                self.send_header("Content-Length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+            else:
+                self._reply(200, ok)
 
 
 @pytest.fixture(scope="module")
@@ -119,6 +135,29 @@ def test_openai_client_retries_server_errors_but_not_client_errors(server):
     assert res.ok and Stub.counts["flaky"] == 2
     res = client(server, "bad", retries=3).select_labels(IMAGE, "p", [3, 5])
     assert not res.ok and "HTTP 400" in res.error and Stub.counts["bad"] == 1
+
+
+def test_openai_client_keeps_its_connection_alive(server):
+    with client(server, "ok") as vlm:
+        vlm.select_labels(IMAGE, "p", [3, 5])
+        before = Stub.connections
+        for _ in range(3):
+            assert vlm.select_labels(IMAGE, "p", [3, 5]).ok
+        assert Stub.connections == before  # three more queries, no new connection
+
+
+def test_openai_client_waits_what_retry_after_asks_up_to_a_cap(server):
+    waits = []
+    res = client(server, "busy", retries=2, backoff=0.01, sleep=waits.append).select_labels(IMAGE, "p", [3, 5])
+    assert res.ok and Stub.counts["busy"] == 2 and waits == [7.0]
+    Stub.counts["busy"] = 0
+    waits.clear()
+    capped = client(server, "busy", retries=2, max_retry_after=2.0, sleep=waits.append)
+    assert capped.select_labels(IMAGE, "p", [3, 5]).ok and waits == [2.0]
+    from splatsearch.social.convoi.vlm import retry_after_seconds
+
+    assert retry_after_seconds("1.5") == 1.5 and retry_after_seconds(None) is None
+    assert retry_after_seconds("Wed, 21 Oct 2015 07:28:00 GMT") == 0.0 and retry_after_seconds("soon") is None
 
 
 def test_parse_labels_is_defensive():

@@ -3,8 +3,9 @@
 Implementations:
 
 * :class:`OpenAICompatibleVLM`: any OpenAI-compatible ``/chat/completions`` endpoint (GPT-4o,
-  Gemini through its OpenAI endpoint, vLLM, llama.cpp server, ...) over stdlib ``urllib``:
-  timeouts, retries with backoff on network errors, 429 and 5xx, and defensive parsing of the
+  Gemini through its OpenAI endpoint, vLLM, llama.cpp server, ...) over one keep-alive ``httpx``
+  client: timeouts, retries with backoff on network errors, 429 and 5xx (waiting what the
+  server's ``Retry-After`` asks, up to a cap), and defensive parsing of the
   reply. It never raises for a failed query: the result has ``ok=False`` and the planner falls
   back to plain DWA.
 * :class:`RuleBasedVLM`: an offline stand-in that reads the behaviour phrase in the prompt and
@@ -21,8 +22,6 @@ import json
 import os
 import re
 import time
-import urllib.error
-import urllib.request
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, NamedTuple, Protocol, runtime_checkable
@@ -115,16 +114,34 @@ class OpenAICompatibleVLM:
 
     def __init__(self, base_url: str, model: str, *, api_key: str | None = None, api_key_env: str = "OPENAI_API_KEY",
                  timeout: float = 20.0, retries: int = 2, backoff: float = 0.5, max_tokens: int = 200,
-                 temperature: float = 0.0):
+                 temperature: float = 0.0, max_retry_after: float = 30.0, sleep=time.sleep):
         if not base_url.startswith(("http://", "https://")):
             raise ValueError(f"base_url must start with http:// or https://, got {base_url!r}")
-        if timeout <= 0 or retries < 0 or backoff < 0:
-            raise ValueError("need timeout > 0, retries >= 0 and backoff >= 0")
+        if timeout <= 0 or retries < 0 or backoff < 0 or max_retry_after < 0:
+            raise ValueError("need timeout > 0, retries >= 0, backoff >= 0 and max_retry_after >= 0")
         self.url = base_url.rstrip("/") + "/chat/completions"
         self.model = model
         self.api_key = api_key if api_key is not None else os.environ.get(api_key_env)
         self.timeout, self.retries, self.backoff = float(timeout), int(retries), float(backoff)
+        self.max_retry_after = float(max_retry_after)
         self.max_tokens, self.temperature = int(max_tokens), float(temperature)
+        self._sleep = sleep
+        self._client = None  # one httpx.Client for every query: its connections are kept alive
+
+    def close(self) -> None:
+        """Close the kept-alive connections (a later query opens new ones)."""
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __getstate__(self) -> dict:  # picklable for worker processes: the connection pool stays behind
+        return {**self.__dict__, "_client": None}
 
     def request_body(self, image: np.ndarray, prompt: str, valid: Sequence[int]) -> dict:
         """The JSON body sent for one marker query."""
@@ -141,37 +158,41 @@ class OpenAICompatibleVLM:
                     {"type": "text", "text": text},
                     {"type": "image_url", "image_url": {"url": f"data:image/png;base64,{b64}"}}]}]}
 
-    def _post(self, body: bytes) -> tuple[int, str]:
+    def _post(self, body: bytes) -> tuple[int, str, float | None]:
+        """(status, reply text, Retry-After seconds or None) of one POST."""
+        import httpx
+
+        if self._client is None:
+            self._client = httpx.Client(timeout=self.timeout)
         headers = {"Content-Type": "application/json"}
         if self.api_key:
             headers["Authorization"] = f"Bearer {self.api_key}"
-        req = urllib.request.Request(self.url, data=body, headers=headers, method="POST")
-        try:
-            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
-                return resp.status, resp.read().decode("utf-8", "replace")
-        except urllib.error.HTTPError as e:
-            try:
-                detail = e.read().decode("utf-8", "replace")[:500]
-            except Exception:  # noqa: BLE001 - the error body is only decoration
-                detail = ""
-            return e.code, detail
+        resp = self._client.post(self.url, content=body, headers=headers)
+        return resp.status_code, resp.text, retry_after_seconds(resp.headers.get("Retry-After"))
 
     def complete(self, body: dict) -> ChatReply:
         """POST one chat-completion ``body`` with the retries and back-off; never raises for
         network or reply problems (``ChatReply.content`` is None and ``error`` says why)."""
+        import httpx
+
         t0 = time.perf_counter()
         data = json.dumps(body).encode("utf-8")
         err = "no attempt made"
+        wait = 0.0
         for attempt in range(self.retries + 1):
             if attempt:
-                time.sleep(self.backoff * 2 ** (attempt - 1))
+                self._sleep(wait)
+            wait = self.backoff * 2 ** attempt
             try:
-                status, text = self._post(data)
-            except (urllib.error.URLError, TimeoutError, OSError, ValueError) as e:
-                err = f"request failed: {type(e).__name__}: {getattr(e, 'reason', e)}"
+                status, text, retry_after = self._post(data)
+            except (httpx.HTTPError, OSError, ValueError) as e:
+                kind = "timed out" if isinstance(e, httpx.TimeoutException) else type(e).__name__
+                err = f"request failed: {kind}: {e}"
                 continue
             if status == 429 or status >= 500:
                 err = f"HTTP {status}: {text[:200]}"
+                if retry_after is not None:  # the server said how long; never past the cap
+                    wait = min(max(retry_after, 0.0), self.max_retry_after)
                 continue
             if status != 200:
                 return ChatReply(None, text[:2000], f"HTTP {status}: {text[:200]}", time.perf_counter() - t0)
@@ -194,6 +215,24 @@ class OpenAICompatibleVLM:
             return VLMResult(False, raw=reply.raw, error="the reply names no valid marker", latency_s=reply.latency_s,
                              source="openai")
         return VLMResult(True, labels, reply.raw, None, reply.latency_s, "openai")
+
+
+def retry_after_seconds(value: str | None) -> float | None:
+    """Seconds asked by a ``Retry-After`` header: a number of seconds or an HTTP date (RFC 9110);
+    None when absent or unreadable."""
+    if not value:
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        pass
+    from email.utils import parsedate_to_datetime
+
+    try:
+        when = parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, when.timestamp() - time.time())
 
 
 class ChatReply(NamedTuple):
