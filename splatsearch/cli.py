@@ -480,6 +480,16 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "repeats", 1) < 1:
         build_parser().error("--repeats must be >= 1")
+    import logging
+
+    from rich.console import Console
+    from rich.logging import RichHandler
+
+    # the library logs through `logging` (never print); the CLI shows INFO and up on stderr
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s", datefmt="[%X]",
+                        handlers=[RichHandler(show_path=False, console=Console(stderr=True))])
+    for noisy in ("jax", "absl", "httpx", "httpcore", "websockets", "asyncio"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     from splatsearch.compile_cache import enable_compile_cache
 
     enable_compile_cache()

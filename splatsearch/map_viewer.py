@@ -15,6 +15,7 @@ Render modes:
 
 from __future__ import annotations
 
+import logging
 import threading
 
 import numpy as np
@@ -22,6 +23,7 @@ import numpy as np
 from splatsearch.viewer import check_port, covariances_from, decimate, framing_camera
 
 RENDER_MODES = ("RGB", "depth", "alpha")
+logger = logging.getLogger(__name__)
 
 
 def client_camera(wxyz, position, fov: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -208,7 +210,7 @@ class MapViewer:
                     self.render_for(client)
                 except Exception as e:  # a browser that left mid-render, say; keep serving the others
                     if not self._closed:
-                        print(f"splatsearch view: render failed: {type(e).__name__}: {e}")
+                        logger.warning("render failed: %s: %s", type(e).__name__, e)
 
     def render_for(self, client) -> np.ndarray:
         """Render the current mode from ``client``'s camera and send it as its background image."""

@@ -13,8 +13,11 @@ and averaging).
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections.abc import Callable, Sequence
+
+logger = logging.getLogger(__name__)
 
 #: modules a worker imports (and whose Warp kernels it loads) once, before its first job
 WORKER_MODULES = ("splatsearch.social.olivia.dataset", "splatsearch.social.olivia.train")
@@ -122,11 +125,12 @@ def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, basel
 
 def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequence[int], baselines: Sequence[str],
                        variants: Sequence[str], *, executor, out_dir: str, resume: bool = False,
-                       on_update: Callable | None = None, log: Callable[[str], None] = print) -> list[dict]:
+                       on_update: Callable | None = None, log: Callable[[str], None] | None = None) -> list[dict]:
     """:func:`~splatsearch.social.olivia.train.table_one`'s rows, one job per (scenario, seed).
     Finished jobs go to ``out_dir/table1_jobs.json`` at once; ``resume`` reuses those run with the
     same checkpoint (path, size, mtime), baselines and variants. Raises RuntimeError naming the
     failed jobs (the finished ones stay saved)."""
+    log = log or logger.info  # a caller may pass console.log; the library logs by default
     from splatsearch.io import atomic_write_bytes
     from splatsearch.parallel import Job
 

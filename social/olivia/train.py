@@ -25,6 +25,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import logging
 import os
 import time
 import zipfile
@@ -54,6 +55,8 @@ from .dataset import Samples, build_dataset
 from .features import action_of
 from ..convoi.scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS, make_scenario
 from .tokenizer import DEFAULT_TOKENIZER
+
+logger = logging.getLogger(__name__)
 
 FORMAT = "splatsearch-olivia-checkpoint"
 VERSION = 1
@@ -369,10 +372,11 @@ def tsm_rows(trajs: np.ndarray, s: Samples, counterfactual: bool = True) -> tupl
 
 
 def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfig = OliviaConfig(),
-                 log: Callable[[str], None] = print, progress=None) -> dict:
+                 log: Callable[[str], None] | None = None, progress=None) -> dict:
     """Run the three stages and write ``out_dir/olivia.npz`` (all networks + D_T), the stage
     checkpoints and ``out_dir/train_summary.json``. ``progress``: an optional
     ``rich.progress.Progress`` (a task per stage). Returns the summary dict."""
+    log = log or logger.info  # a caller may pass console.log; the library logs by default
     os.makedirs(out_dir, exist_ok=True)
     t_start = time.perf_counter()
     summary: dict = {"config": config_to_meta(cfg), "train": dataclasses.asdict(tc)}
@@ -542,8 +546,9 @@ def run_baseline(scn, kind: str):
 
 def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = TABLE_ONE_SEEDS,
               baselines: Sequence[str] = ("dwa", "convoi"), variants: Sequence[str] = ("olivia",),
-              log: Callable[[str], None] = print, progress=None) -> list[dict]:
+              log: Callable[[str], None] | None = None, progress=None) -> list[dict]:
     """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``."""
+    log = log or logger.info  # a caller may pass console.log; the library logs by default
     rows = []
     names = {"dwa": "DWA", "convoi": "CoNVOI+DWA"}
     tid = progress.add_task("Table I", total=len(scenarios) * len(seeds)) if progress is not None else None
@@ -585,13 +590,14 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
 
 def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = (500, 501, 502, 503),
               test_seeds: Sequence[int] = (1000, 1001, 1002), llu: LLUConfig = LLUConfig(),
-              train_captions: Sequence[str] | None = None, log: Callable[[str], None] = print,
+              train_captions: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
               progress=None, buffer_every: int = 2) -> tuple[list[dict], OliviaNav, dict]:
     """Table II form on a scenario held out of training: every variant before and after one LLU
     update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
     ``adapt_seeds`` episodes, as many as it takes (:func:`fill_buffer`); its images are captioned
     by the template captioner (the offline stand-in for the VLM); D_T is rebuilt from its
     offline captions plus the new ones."""
+    log = log or logger.info  # a caller may pass console.log; the library logs by default
     def evaluate(p: OliviaNav) -> dict:
         out = {}
         for seed in test_seeds:
