@@ -124,6 +124,9 @@ def _cmd_map(args: argparse.Namespace) -> int:
                         pixel_scale=args.pixel_scale if args.pixel_scale else float(args.stride if real else 1),
                         first_iters=args.first_iters, min_depth=args.depth_range[0], max_depth=args.depth_range[1],
                         fill_holes=real and not args.no_fill_holes, initial_capacity=1 << 15 if real else 16384)
+    from splatsearch.cli_config import apply_overrides, config_overrides
+
+    mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale)
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
                  refine=args.refine)
@@ -172,9 +175,11 @@ def _cmd_map(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from splatsearch.demo import DemoOptions, run_demo
 
+    from splatsearch.cli_config import config_overrides
+
     run_demo(DemoOptions(seed=args.seed, split=args.split, episode=args.episode, port=args.port,
                          viewer=not args.no_viewer, out=args.out, variant=args.variant, max_steps=args.max_steps,
-                         hold=not args.exit_when_done))
+                         hold=not args.exit_when_done, agent_overrides=config_overrides(args, "agent")))
     return 0
 
 
@@ -211,7 +216,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                                                                             else ""))
 
         kw = {} if variants is None else {"variants": variants}
-        overrides = {"colour_cue": False} if args.no_colour_cue else None
+        import json
+
+        from splatsearch.cli_config import config_overrides
+
+        # JSON-normal (tuples as lists) so that a --resume compares equal with results.json
+        overrides = json.loads(json.dumps({**config_overrides(args, "agent"),
+                                           **({"colour_cue": False} if args.no_colour_cue else {})})) or None
         executor = executor_from_args(args)
         try:
             _, summary = evaluate(args.split, args.episodes, args.seed, out=args.out, max_steps=args.max_steps,
@@ -303,9 +314,24 @@ def _use_formatter(parser: argparse.ArgumentParser) -> None:
                 _use_formatter(sp)
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: sub-commands that take every field of a config dataclass as ``--PREFIX.FIELD`` (see
+#: :mod:`splatsearch.cli_config`): (prefix, "module:Class", fields left to the command's own flags)
+CONFIG_FLAGS = {
+    "map": ("mapper", "splatsearch.mapper:MapperConfig", ()),
+    "demo": ("agent", "splatsearch.agent.config:AgentConfig", ("variant",)),
+    "eval": ("agent", "splatsearch.agent.config:AgentConfig", ("variant",)),
+}
+
+
+def _command_of(argv: list[str]) -> str | None:
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The ``splatsearch`` parser. Building it imports neither JAX nor Warp: every command's heavy
-    modules are imported inside its handler."""
+    modules are imported inside its handler. When ``argv`` names ``map``, ``demo`` or ``eval``,
+    that command also gets a flag per config field (:data:`CONFIG_FLAGS`), which loads its
+    config class (and so JAX)."""
     p = argparse.ArgumentParser(prog="splatsearch", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     from splatsearch._version import __version__
@@ -441,6 +467,16 @@ def build_parser() -> argparse.ArgumentParser:
     from splatsearch.social.olivia.cli import register_olivia
 
     register_social(sub, extra=[register_olivia])
+    command = _command_of(list(argv or []))
+    if command in CONFIG_FLAGS:
+        import importlib
+
+        from splatsearch.cli_config import add_config_flags
+
+        prefix, path, skip = CONFIG_FLAGS[command]
+        module, _, name = path.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        add_config_flags(sub.choices[command], cls, prefix, skip=skip)
     _use_formatter(p)
     return p
 
@@ -477,7 +513,8 @@ def port_number(text: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
     if getattr(args, "repeats", 1) < 1:
         build_parser().error("--repeats must be >= 1")
     import logging

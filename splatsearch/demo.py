@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from splatsearch import io
+from splatsearch.cli_config import apply_overrides
 from splatsearch.agent import AgentConfig, SplatSearchAgent, StepInfo
 
 
@@ -30,6 +31,7 @@ class DemoOptions:
     variant: str = "splatsearch"
     max_steps: int | None = None
     hold: bool = True  # keep the viewer up after the episode until Ctrl-C
+    agent_overrides: dict | None = None  # AgentConfig fields to change (nested dicts for nested configs)
 
 
 class ViewerBridge:
@@ -138,7 +140,8 @@ def run_demo(opts: DemoOptions, console=None) -> dict:
                 if bridge is not None:
                     bridge.update(agent, obs, info)
 
-            result = run_episode(ep, AgentConfig(variant=opts.variant), env=env, on_step=on_step,
+            config = apply_overrides(AgentConfig(variant=opts.variant), opts.agent_overrides or {})
+            result = run_episode(ep, config, env=env, on_step=on_step,
                                  max_steps=opts.max_steps)
     except KeyboardInterrupt:
         interrupted = True

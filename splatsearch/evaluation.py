@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from splatsearch.agent import VARIANTS, AgentConfig
+from splatsearch.cli_config import apply_overrides
 from splatsearch.io import atomic_write_bytes
 from splatsearch.parallel import Counts, Executor, Job, Outcome, make_executor, warm_worker
 
@@ -59,7 +60,7 @@ def _run_one(args):
     ep = Episode.from_json(ep_json)
     t0 = time.perf_counter()
     try:
-        r = run_episode(ep, AgentConfig(variant=variant, **overrides), max_steps=max_steps)
+        r = run_episode(ep, apply_overrides(AgentConfig(variant=variant), overrides), max_steps=max_steps)
     except Exception as e:  # noqa: BLE001 - one broken episode must not end the whole evaluation
         import traceback
 
@@ -170,7 +171,7 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIA
     bad = sorted((set(overrides) - set(AgentConfig.__dataclass_fields__)) | ({"variant"} & set(overrides)))
     if bad:
         raise ValueError(f"agent_overrides: not settable AgentConfig fields: {bad}")
-    AgentConfig(**overrides)  # invalid values fail here, not in every worker
+    apply_overrides(AgentConfig(), overrides)  # invalid values fail here, not in every worker
     if resume and not out:
         raise ValueError("resume needs out (the folder with results.json)")
     eps = make_eval_episodes(split, n, seed, identical_furniture=identical_furniture)
