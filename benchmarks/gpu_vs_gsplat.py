@@ -120,13 +120,13 @@ def main() -> None:
     args = ap.parse_args()
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
-    torch, gsplat = check_requirements()
     from splatsearch import bench
 
     makers = bench.scene_makers()
     unknown = [s for s in args.scenes.split(",") if s not in makers]
     if unknown:
         ap.error(f"unknown scenes {unknown}; choose from {sorted(makers)}")
+    torch, gsplat = check_requirements()
     print(f"gsplat {getattr(gsplat, '__version__', '?')}, torch {torch.__version__}, "
           f"GPU {torch.cuda.get_device_name()}")
     print(f"{'scene':22s} {'isect':>10s} {'ours f':>9s} {'gsplat f':>9s} {'ratio':>6s} "
