@@ -28,8 +28,23 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+_process_threads: int | None = None  # set_default_threads(): a worker's share of the machine
+
+
+def set_default_threads(threads: int | None) -> None:
+    """Make ``threads`` this process's default CPU thread count (before the environment variable);
+    None removes it. For worker processes that get a share of the cores (splatsearch.parallel)."""
+    global _process_threads
+    if threads is not None and (isinstance(threads, bool) or int(threads) < 1):
+        raise ValueError(f"threads must be >= 1, got {threads!r}")
+    _process_threads = None if threads is None else int(threads)
+
+
 def default_threads() -> int:
-    """``SPLATSEARCH_THREADS`` if set (>= 1), else the usable core count."""
+    """:func:`set_default_threads`'s value if set, else ``SPLATSEARCH_THREADS`` (>= 1), else the
+    usable core count."""
+    if _process_threads is not None:
+        return _process_threads
     env = os.environ.get(THREADS_ENV, "").strip()
     if env:
         try:

@@ -522,10 +522,14 @@ def executor_from_args(args: argparse.Namespace, **kw) -> Executor:
 # -- worker warm-up -----------------------------------------------------------------------------
 
 def limit_threads(threads: int) -> None:
-    """Give this process ``threads`` cores: Warp's CPU bands (``SPLATSEARCH_THREADS``) and XLA's
-    pool would otherwise each take every core in every worker and fight over them. Call before
+    """Give this worker process ``threads`` cores: Warp's CPU bands (the rasterizer's default
+    thread count, :func:`splatsearch.kernels.config.set_default_threads`) and XLA's pool would
+    otherwise each take every core in every worker and fight over them. XLA reads its pool size
+    only from ``XLA_FLAGS``, so that is set in this (worker) process's environment. Call before
     the first JAX computation."""
-    os.environ["SPLATSEARCH_THREADS"] = str(threads)
+    from splatsearch.kernels.config import set_default_threads
+
+    set_default_threads(threads)
     flags = os.environ.get("XLA_FLAGS", "")
     if "intra_op_parallelism_threads" not in flags:
         os.environ["XLA_FLAGS"] = (flags + f" --xla_cpu_multi_thread_eigen={str(threads > 1).lower()}"

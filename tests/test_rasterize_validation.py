@@ -164,3 +164,18 @@ def test_random_valid_scenes_never_produce_nan(seed, n, scale_exp):
     val, (gm, gs) = jax.value_and_grad(loss, argnums=(0, 1))(m, s)
     assert np.isfinite(float(val))
     assert np.isfinite(np.asarray(gm)).all() and np.isfinite(np.asarray(gs)).all()
+
+
+def test_process_default_threads_come_before_the_environment(monkeypatch):
+    from splatsearch.kernels import config
+
+    monkeypatch.setenv(config.THREADS_ENV, "3")
+    try:
+        assert config.default_threads() == 3
+        config.set_default_threads(1)
+        assert config.default_threads() == 1
+        with pytest.raises(ValueError):
+            config.set_default_threads(0)
+    finally:
+        config.set_default_threads(None)
+    assert config.default_threads() == 3
