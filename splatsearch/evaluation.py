@@ -144,7 +144,8 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIA
     (``"local"``: ``workers`` processes on this machine, 1 = in this process; ``"ray"``: Ray
     actors on the cluster at ``address``, None = a local Ray; ``workers`` None = one per cluster
     CPU; ``gpus_per_job``: GPUs each Ray worker asks for). See :mod:`splatsearch.parallel`. Each
-    worker warms up once (threads, the JAX compile cache, Warp kernels), not once per episode.
+    worker warms up once (threads, the JAX compile cache, Warp kernels), not once per episode: the
+    executor's warm-up is set to :func:`~splatsearch.parallel.warm_worker` here.
     The per-episode outcomes do not depend on the backend; ``results`` come back sorted by
     episode, then variant.
 

@@ -395,12 +395,13 @@ class RayExecutor(Executor):
         super().__init__(workers, **kw)
         self._ray = ray
         self.cpus_per_job, self.gpus_per_job = cpus_per_job, gpus_per_job
-        self._opts = {"num_cpus": cpus_per_job, "num_gpus": gpus_per_job, "max_restarts": 0, "max_task_retries": 0}
+        # no restarts by Ray: a lost actor's job is retried here, on a new actor, and counted
+        self._actor_cls = ray.remote(_RayWorker).options(num_cpus=cpus_per_job, num_gpus=gpus_per_job,
+                                                          max_restarts=0, max_task_retries=0)
         self._actors: list = []
 
     def _new_actor(self):
-        ray = self._ray
-        return ray.remote(_RayWorker).options(**self._opts).remote(self.warmup, self.warmup_args)
+        return self._actor_cls.remote(self.warmup, self.warmup_args)
 
     def _run(self, jobs, notify):
         ray = self._ray
