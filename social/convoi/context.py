@@ -241,7 +241,7 @@ class CLIPContextClassifier:
             import transformers
 
             self._proc = transformers.CLIPProcessor.from_pretrained(self.model_path, local_files_only=True)
-            self._model = transformers.CLIPModel.from_pretrained(self.model_path, local_files_only=True).eval()
+            self._model = transformers.CLIPModel.from_pretrained(self.model_path, local_files_only=True).eval().to(self.device)
 
     def probabilities(self, image: np.ndarray, texts: list[str]) -> np.ndarray:
         """Softmax over ``texts`` of CLIP's image-text logits for ``image`` (H, W, 3)."""
@@ -262,7 +262,7 @@ class CLIPContextClassifier:
                 ft = ft / ft.norm(dim=-1, keepdim=True)
                 logits = 100.0 * fi @ ft.T
             else:
-                inp = self._proc(text=texts, images=pil, return_tensors="pt", padding=True)
+                inp = self._proc(text=texts, images=pil, return_tensors="pt", padding=True).to(self.device)
                 logits = self._model(**inp).logits_per_image
         return torch.softmax(logits, -1)[0].cpu().numpy().astype(np.float64)
 

@@ -143,6 +143,12 @@ class SimDetector:
         return [d for _, _, d in out]
 
 
+def _resize_mask(m: np.ndarray, H: int, W: int) -> np.ndarray:
+    import cv2
+
+    return cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+
+
 class UltralyticsDetector:
     """YOLO-seg style detector loaded from a local weights file (never downloads).
 
@@ -158,7 +164,10 @@ class UltralyticsDetector:
         conf: minimum confidence.
         min_pixels: smallest mask kept.
         device: torch device string ("cpu", "cuda:0"); None lets ultralytics pick.
-        sam_weights_path: optional local SAM checkpoint for box-only models.
+        sam_weights_path: optional local SAM checkpoint for box-only models (ultralytics picks
+            the architecture from the file name: ``mobile_sam.pt``, ``sam_b.pt``, ...).
+        imgsz: inference size in pixels (None: the model's default, 640 for YOLO).
+        max_det: most detections kept per image (after NMS).
 
     Raises:
         FileNotFoundError: if a weights path does not exist (checked before anything is imported,
@@ -168,7 +177,8 @@ class UltralyticsDetector:
 
     def __init__(self, weights_path: str | os.PathLike, class_map: dict[str, str | None] | None = None,
                  conf: float = 0.35, min_pixels: int = 150, device: str | None = None,
-                 sam_weights_path: str | os.PathLike | None = None):
+                 sam_weights_path: str | os.PathLike | None = None, imgsz: int | None = None,
+                 max_det: int = 300):
         self.weights_path = os.fspath(weights_path)
         if not os.path.isfile(self.weights_path):
             raise FileNotFoundError(f"detector weights not found: {self.weights_path!r} (weights are never downloaded)")
@@ -178,7 +188,12 @@ class UltralyticsDetector:
         if not 0.0 <= conf <= 1.0:
             raise ValueError(f"conf must be in [0, 1], got {conf}")
         self.class_map = dict(COCO_TO_GOAL if class_map is None else class_map)
+        if imgsz is not None and int(imgsz) < 32:
+            raise ValueError(f"imgsz must be >= 32 pixels or None, got {imgsz}")
+        if int(max_det) < 1:
+            raise ValueError(f"max_det must be >= 1, got {max_det}")
         self.conf, self.min_pixels, self.device = float(conf), int(min_pixels), device
+        self.imgsz, self.max_det = None if imgsz is None else int(imgsz), int(max_det)
         self._model = None
         self._sam = None
 
@@ -200,9 +215,11 @@ class UltralyticsDetector:
         H, W = rgb.shape[:2]
         # ultralytics treats numpy input as OpenCV-style BGR uint8
         bgr = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
-        kw = {"conf": self.conf, "verbose": False, "retina_masks": True}
+        kw = {"conf": self.conf, "verbose": False, "retina_masks": True, "max_det": self.max_det}
         if self.device is not None:
             kw["device"] = self.device
+        if self.imgsz is not None:
+            kw["imgsz"] = self.imgsz
         res = model.predict(bgr, **kw)[0]
         if res.boxes is None or len(res.boxes) == 0:
             return []
@@ -212,22 +229,27 @@ class UltralyticsDetector:
         names = res.names
         if res.masks is not None:
             masks = res.masks.data.cpu().numpy() > 0.5
-        elif self._sam is not None:
-            sres = self._sam.predict(bgr, bboxes=boxes.tolist(), verbose=False, **({"device": self.device} if self.device else {}))[0]
-            masks = sres.masks.data.cpu().numpy() > 0.5
         else:
             masks = np.zeros((len(boxes), H, W), bool)
             for m, (x0, y0, x1, y1) in zip(masks, boxes):
                 m[int(max(0, y0)):int(np.ceil(min(H, y1))), int(max(0, x0)):int(np.ceil(min(W, x1)))] = True
+            if self._sam is not None:
+                # SAM drops masks whose predicted IoU is below its own conf (0.25 by default), so its
+                # output is not one mask per box; keep them all and place each by its prompt index
+                # (the "cls" of SAM's results); a box SAM returns nothing for stays a filled box
+                skw = {"conf": 0.0, "verbose": False, **({"device": self.device} if self.device else {})}
+                sres = self._sam.predict(bgr, bboxes=boxes.tolist(), **skw)[0]
+                if sres.masks is not None and sres.boxes is not None:
+                    idx = sres.boxes.cls.cpu().numpy().astype(int)
+                    for i, m in zip(idx, sres.masks.data.cpu().numpy() > 0.5):
+                        masks[i] = m if m.shape == (H, W) else _resize_mask(m, H, W)
         out = []
         for m, c, s in zip(masks, cls, scores):
             label = self.class_map.get(str(names[int(c)]).lower())
             if label is None:
                 continue
             if m.shape != (H, W):
-                import cv2
-
-                m = cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+                m = _resize_mask(m, H, W)
             if m.sum() >= self.min_pixels:
                 out.append(Detection(m, label, float(np.clip(s, 0, 1))))
         return out

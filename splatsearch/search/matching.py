@@ -24,6 +24,7 @@ RANSAC verification.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import os
 from collections.abc import Sequence
@@ -193,13 +194,23 @@ def best_view(goal: np.ndarray, images: np.ndarray | Sequence[np.ndarray], match
     return BestView(i, int(counts[i]), counts)
 
 
+def _loftr_default_cfg() -> dict:
+    try:
+        from kornia.feature.loftr.loftr import default_cfg
+    except ImportError:  # moved in some kornia releases
+        from kornia.feature.loftr import default_cfg
+    return default_cfg
+
+
 class LoFTRMatcher:
     """LoFTR (kornia) from a local checkpoint, verified with RANSAC like :class:`SIFTMatcher`.
 
     Args:
         weights_path: local LoFTR checkpoint (a ``torch.save`` dict with ``state_dict``, as the
-            official indoor / outdoor checkpoints, or a bare state dict).
-        conf_thresh: minimum LoFTR match confidence.
+            official indoor / outdoor checkpoints, or a bare state dict; keys may carry the
+            reference implementation's ``matcher.`` prefix).
+        conf_thresh: minimum LoFTR match confidence (LoFTR's coarse-level threshold; its own
+            default is 0.2).
         max_side: images are resized so the long side is at most this (and to multiples of 8,
             which LoFTR's coarse level needs); coordinates are mapped back to the input pixels.
         ransac_thresh, model, min_matches: the geometric verification (see :func:`ransac_inliers`);
@@ -232,9 +243,19 @@ class LoFTRMatcher:
                 from kornia.feature import LoFTR
             except ImportError as e:
                 raise ImportError("LoFTRMatcher needs 'kornia' and 'torch' (pip install kornia torch)") from e
-            net = LoFTR(pretrained=None)
+            # LoFTR drops coarse matches below its own threshold (0.2 by default) before we see
+            # them; make it the caller's conf_thresh so a lower threshold takes effect
+            cfg = copy.deepcopy(_loftr_default_cfg())
+            cfg["match_coarse"]["thr"] = self.conf_thresh
+            net = LoFTR(pretrained=None, config=cfg)
             state = torch.load(self.weights_path, map_location="cpu")
-            net.load_state_dict(state.get("state_dict", state) if isinstance(state, dict) else state)
+            if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+                state = state["state_dict"]
+            # checkpoints of the reference implementation (PyTorch Lightning) prefix every key
+            # with "matcher."; kornia's module has no such prefix
+            if state and all(k.startswith("matcher.") for k in state):
+                state = {k[len("matcher."):]: v for k, v in state.items()}
+            net.load_state_dict(state)
             self._net = net.eval().to(self.device)
         return self._net
 
