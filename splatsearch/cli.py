@@ -179,7 +179,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     run_demo(DemoOptions(seed=args.seed, split=args.split, episode=args.episode, port=args.port,
                          viewer=not args.no_viewer, out=args.out, variant=args.variant, max_steps=args.max_steps,
-                         hold=not args.exit_when_done, agent_overrides=config_overrides(args, "agent")))
+                         hold=not args.exit_when_done,
+                         agent_overrides={**config_overrides(args, "agent"), **_plugin_overrides(args)}))
     return 0
 
 
@@ -221,7 +222,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         from splatsearch.cli_config import config_overrides
 
         # JSON-normal (tuples as lists) so that a --resume compares equal with results.json
-        overrides = json.loads(json.dumps({**config_overrides(args, "agent"),
+        overrides = json.loads(json.dumps({**config_overrides(args, "agent"), **_plugin_overrides(args),
                                            **({"colour_cue": False} if args.no_colour_cue else {})})) or None
         executor = executor_from_args(args)
         try:
@@ -321,6 +322,31 @@ CONFIG_FLAGS = {
     "demo": ("agent", "splatsearch.agent.config:AgentConfig", ("variant",)),
     "eval": ("agent", "splatsearch.agent.config:AgentConfig", ("variant",)),
 }
+
+
+def _add_plugin_flags(parser: argparse.ArgumentParser) -> None:
+    """``--detector`` / ``--matcher`` plug-in spec flags (:mod:`splatsearch.plugins`)."""
+    from splatsearch.plugins import DETECTOR_HELP, MATCHER_HELP
+
+    parser.add_argument("--detector", default=None, metavar="SPEC",
+                        help=DETECTOR_HELP.replace("; default)", ")") + " (default: sim)")
+    parser.add_argument("--matcher", default=None, metavar="SPEC",
+                        help=MATCHER_HELP.replace("; default)", ")") + " (default: sift)")
+
+
+def _plugin_overrides(args: argparse.Namespace) -> dict:
+    """AgentConfig overrides of ``--detector`` / ``--matcher``, checked here (unknown kind, missing
+    file) before any episode or worker starts."""
+    from splatsearch.plugins import make_detector, make_matcher
+
+    out = {}
+    if args.detector is not None:
+        make_detector(args.detector)
+        out["detector"] = args.detector
+    if args.matcher is not None:
+        make_matcher(args.matcher)
+        out["matcher"] = args.matcher
+    return out
 
 
 def _command_of(argv: list[str]) -> str | None:
@@ -423,6 +449,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     d.add_argument("--variant", choices=VARIANTS, default="splatsearch", help="the full system or one of its ablations")
     d.add_argument("--max-steps", type=int, default=None, help="step cap (default: the episode's, 1000)")
     d.add_argument("--out", default="runs/demo", help="output directory (map.ply, trajectory and summary)")
+    _add_plugin_flags(d)
     d.set_defaults(func=_cmd_demo)
 
     e = sub.add_parser("eval", help="SR / SPL of SplatSearch and its ablations")
@@ -437,6 +464,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help=f"comma-separated subset of {','.join(VARIANTS)} (default: all five)")
     e.add_argument("--max-steps", type=int, default=None,
                    help="step cap per episode, in agent actions (default: the episode's, 1000)")
+    _add_plugin_flags(e)
     e.add_argument("--resume", action="store_true",
                    help="keep the finished episodes in OUT/results.json and run only the missing ones")
     e.add_argument("--identical-furniture", action="store_true",

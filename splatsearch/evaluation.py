@@ -97,11 +97,15 @@ def summarise(results: list[dict]) -> dict[str, dict]:
 
 
 def eval_title(split: str, n: int, seed: int, identical_furniture: bool = False, agent_overrides: dict | None = None) -> str:
-    """The heading of an evaluation's table."""
+    """The heading of an evaluation's table. It always names the detector and matcher: with the
+    default ``sim`` detector every number rests on the simulator's ground-truth masks (an oracle)."""
+    over = dict(agent_overrides or {})
+    detector, matcher = over.pop("detector", "sim"), over.pop("matcher", "sift")
     extra = ", identical furniture" if identical_furniture else ""
-    if agent_overrides:
-        extra += ", agent " + ", ".join(f"{k}={v}" for k, v in sorted(agent_overrides.items()))
-    return f"{split}, {n} episodes, seed {seed}{extra}"
+    if over:
+        extra += ", agent " + ", ".join(f"{k}={v}" for k, v in sorted(over.items()))
+    oracle = " (simulator ground-truth masks, an oracle)" if detector == "sim" else ""
+    return f"{split}, {n} episodes, seed {seed}{extra}; detector {detector}{oracle}, matcher {matcher}"
 
 
 def markdown_table(summary: dict[str, dict], title: str) -> str:

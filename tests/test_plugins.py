@@ -177,3 +177,35 @@ def test_building_model_kinds_imports_no_model_library(tmp_path):
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_agent_builds_its_plugins_from_the_config_specs():
+    import numpy as np
+
+    from splatsearch.agent import AgentConfig, SplatSearchAgent
+    from splatsearch.search.detection import SimDetector
+    from splatsearch.search.matching import RENDER_CONTRAST_THRESHOLD, SIFTMatcher
+
+    K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
+    goal = np.full((48, 64, 3), 0.5, np.float32)
+    a = SplatSearchAgent(K, 64, 48, goal, "chair", (0.0, 0.0, 0.0), config=AgentConfig(matcher="sift,ratio=0.7"))
+    assert isinstance(a.perception.detector, SimDetector) and a.perception.detector.goal_classes == ("chair",)
+    m, r = a.verifier.matcher, a.verifier.nvsm_matcher
+    assert isinstance(m, SIFTMatcher) and isinstance(r, SIFTMatcher) and m is not r
+    assert m.ratio == r.ratio == 0.7
+    assert r.contrast_threshold == RENDER_CONTRAST_THRESHOLD != m.contrast_threshold
+    mine = SIFTMatcher()
+    b = SplatSearchAgent(K, 64, 48, goal, "chair", (0.0, 0.0, 0.0), matcher=mine)
+    assert b.verifier.matcher is mine and b.verifier.nvsm_matcher is mine  # an explicit matcher scores renders too
+
+
+def test_cli_plugin_flags_are_checked_before_anything_runs(tmp_path, capsys):
+    from splatsearch.cli import main
+    from splatsearch.evaluation import eval_title
+
+    assert main(["eval", "--episodes", "1", "--detector", "yolo:/nonexistent/y.pt", "--out", str(tmp_path)]) == 2
+    assert "/nonexistent/y.pt" in capsys.readouterr().err
+    assert main(["demo", "--no-viewer", "--matcher", "surf", "--out", str(tmp_path)]) == 2
+    assert "surf" in capsys.readouterr().err
+    assert "oracle" in eval_title("val-hard", 50, 0) and "matcher sift" in eval_title("val-hard", 50, 0)
+    assert "oracle" not in eval_title("val", 5, 0, agent_overrides={"detector": "yolo:/m.pt"})

@@ -80,6 +80,12 @@ class AgentConfig:
     to a goal object before it is given up. ``verify_steps``: steps spent next to an object whose
     colours match from too few viewpoints, turning toward it, before giving it up.
     ``grid_shape``: cells of the 2-D maps (5 cm) around the start. ``seed``: mapper seeds.
+
+    Plug-ins, as :mod:`splatsearch.plugins` spec strings (picklable, so evaluation workers build
+    their own): ``detector`` is the goal-class detector ("sim" is the simulator's ground-truth
+    masks, an oracle; "yolo:PATH[,sam=PATH]" a local YOLO model); ``matcher`` scores camera crops
+    and, built for renders, the NVSM views ("sift", or "loftr:PATH"). Objects passed to
+    :class:`SplatSearchAgent` take precedence.
     """
 
     variant: str = "splatsearch"
@@ -113,6 +119,8 @@ class AgentConfig:
     colour_full_px: int = 3000
     grid_shape: tuple = (600, 600)
     seed: int = 0
+    detector: str = "sim"
+    matcher: str = "sift"
 
     def __post_init__(self):
         if self.variant not in VARIANTS:

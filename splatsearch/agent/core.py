@@ -29,9 +29,9 @@ from splatsearch.nav.encoders import ColorTextureEncoder, ImageEncoder
 from splatsearch.nav.exploration import ExplorationConfig, ExplorationPlanner
 from splatsearch.nav.grid import GridSpec
 from splatsearch.search.appearance import AppearanceModel, ColorHistogramAppearance
-from splatsearch.search.detection import Detector, SimDetector
+from splatsearch.search.detection import Detector
 from splatsearch.search.inpainting import Inpainter, OpenCVInpainter
-from splatsearch.search.matching import Matcher, SIFTMatcher
+from splatsearch.search.matching import Matcher
 
 from .config import AgentConfig, resolve_variant
 from .decision import SearchPolicy
@@ -71,8 +71,9 @@ class SplatSearchAgent:
             (a goal category).
         start_pose: (x, y, yaw) where the episode starts (centres the grid maps).
         config: :class:`AgentConfig`; detector / matcher / inpainter / encoder / colour_model:
-            plug-ins (offline defaults: simulator masks, SIFT + RANSAC, OpenCV Telea,
-            colour+texture, masked hue-saturation histogram for the colour cue). ``matcher``
+            plug-ins (defaults: ``config.detector`` and ``config.matcher`` specs, i.e. the
+            simulator's masks and SIFT + RANSAC; OpenCV Telea, colour+texture, masked
+            hue-saturation histogram for the colour cue). ``matcher``
             scores the camera crops around detections; ``nvsm_matcher`` scores the rendered novel
             views (default:
             ``matcher`` when one is given, else SIFT with
@@ -101,13 +102,19 @@ class SplatSearchAgent:
         self.W, self.H = int(width), int(height)
         self.goal = _check_goal_image(goal_rgb)
         self.goal_class = goal_class
+        from splatsearch.plugins import make_detector, make_matcher
+
         encoder = encoder or ColorTextureEncoder()
+        if nvsm_matcher is None:  # an explicit matcher also scores the renders, as before
+            nvsm_matcher = matcher or make_matcher(cfg.matcher, renders=True)
+        matcher = matcher or make_matcher(cfg.matcher)
+        detector = detector or make_detector(cfg.detector, goal_classes=(goal_class,))
         self.perception = Perception(self.K, self.W, self.H, self.goal, goal_class, cfg,
-                                     detector=detector or SimDetector(goal_classes=(goal_class,)), encoder=encoder,
+                                     detector=detector, encoder=encoder,
                                      colour_model=colour_model or ColorHistogramAppearance(),
                                      colour_cue=strategy.colour_cue, goal_mask=goal_mask, goal_frame=goal_frame)
-        self.verifier = Verifier(self.goal, self.K, self.W, self.H, cfg, strategy, matcher=matcher or SIFTMatcher(),
-                                 nvsm_matcher=nvsm_matcher or matcher or SIFTMatcher.for_renders(),
+        self.verifier = Verifier(self.goal, self.K, self.W, self.H, cfg, strategy, matcher=matcher,
+                                 nvsm_matcher=nvsm_matcher,
                                  inpainter=inpainter or OpenCVInpainter(),
                                  colour_cue=self.perception.goal_signature is not None)
         terms = strategy.frontier_terms
