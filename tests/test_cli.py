@@ -206,3 +206,13 @@ def test_version_has_one_source(capsys):
     assert capsys.readouterr().out.strip() == f"splatsearch {splatsearch.__version__}"
     assert importlib.metadata.version("splatsearch") == splatsearch.__version__
     assert os.path.exists(os.path.join(os.path.dirname(splatsearch.__file__), "py.typed"))
+
+
+def test_every_imported_third_party_package_is_declared():
+    """scipy, plyfile and httpx are imported by the library, so the distribution must require them."""
+    import importlib.metadata
+    import re
+
+    declared = {re.split(r"[<>=!~\[; ]", r, 1)[0].lower() for r in importlib.metadata.requires("splatsearch") or []
+                if "extra ==" not in r}
+    assert {"scipy", "plyfile", "httpx", "jax", "warp-lang", "opencv-python-headless", "viser"} <= declared
