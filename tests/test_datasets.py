@@ -118,9 +118,14 @@ def write_folder(root, source, pose_style="matrix"):
 def test_tum_loader_on_real_frames():
     seq = load_sequence(TUM)
     assert seq.format == "tum" and len(seq) == 10 and seq.has_gt
+    raw = load_sequence(TUM, max_frames=1, undistort=False)
     # the project's K has pixel centres at +0.5: TUM's (OpenCV) principal point moves by half a pixel
-    np.testing.assert_allclose(seq.K, [[FX, 0, CX + 0.5], [0, FY, CY + 0.5], [0, 0, 1]], rtol=1e-6)
+    np.testing.assert_allclose(raw.K, [[FX, 0, CX + 0.5], [0, FY, CY + 0.5], [0, 0, 1]], rtol=1e-6)
     assert any("distortion" in n for n in seq.notes)
+    # undistorted frames are zoomed to hold only what the sensor saw: no empty border
+    assert seq.K[0, 0] > FX and seq.K[1, 1] > FY
+    assert (seq.frames[0].depth[:, :3] > 0).any() and (seq.frames[0].depth[-3:] > 0).any()
+    assert not np.allclose(raw.frames[0].rgb, seq.frames[0].rgb)
     d = seq.frames[0].depth
     assert 0.3 < np.median(d[d > 0]) < 3.0 and (d == 0).any()  # real sensor: holes
     c = np.array([np.linalg.inv(f.viewmat)[:3, 3] for f in seq.frames])
@@ -136,8 +141,6 @@ def test_tum_loader_on_real_frames():
     half = load_sequence(TUM, "tum", max_frames=2, downscale=2)
     assert (half.width, half.height) == (320, 240) and half.frames[0].depth.shape == (240, 320)
     np.testing.assert_allclose(half.K[:2], seq.K[:2] / 2, rtol=1e-6)
-    raw = load_sequence(TUM, max_frames=1, undistort=False)
-    assert not np.allclose(raw.frames[0].rgb, seq.frames[0].rgb)
 
 
 @needs_tum

@@ -141,6 +141,9 @@ def c2w_to_viewmat(c2w: np.ndarray) -> np.ndarray:
 class Resampler:
     """Undistorts (radtan k1 k2 p1 p2 k3) and resizes colour and depth to a pinhole camera.
 
+    The undistorted camera is zoomed so that it sees only what the sensor saw (OpenCV's
+    ``getOptimalNewCameraMatrix`` with alpha 0): its ``K`` differs from the calibration's.
+
     Depth is remapped with nearest-neighbour sampling (averaging across an object boundary would
     invent depth between the two surfaces) and resized by taking, per output pixel, the nearest
     source pixel. Colour uses bilinear remapping and area resizing.
@@ -155,13 +158,19 @@ class Resampler:
         d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).reshape(-1)
         self.distorted = bool(np.any(d != 0))
         self.maps = None
+        self.K = self.src_K.copy()
         if self.distorted:
-            # OpenCV works in its own pixel convention: shift the principal point back by 0.5
+            # OpenCV works in its own pixel convention: shift the principal point back by 0.5.
+            # alpha=0 zooms in until every output pixel samples inside the source image: an
+            # undistorted frame has no empty border, which no view could explain consistently.
             Kcv = self.src_K.astype(np.float64).copy()
             Kcv[:2, 2] -= 0.5
-            self.maps = cv2.initUndistortRectifyMap(Kcv, d, None, Kcv, self.src_size, cv2.CV_32FC1)
+            newK, _ = cv2.getOptimalNewCameraMatrix(Kcv, d, self.src_size, 0.0, self.src_size)
+            self.maps = cv2.initUndistortRectifyMap(Kcv, d, None, newK, self.src_size, cv2.CV_32FC1)
+            self.K = newK.astype(np.float32)
+            self.K[:2, 2] += 0.5
         s = self.downscale
-        self.K = self.src_K.copy()
+        self.K = self.K.copy()
         self.K[:2] /= s  # with centres at +0.5, scaling a pixel grid scales cx, cy exactly
         self.width, self.height = width // s, height // s
 
