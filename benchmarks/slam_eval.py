@@ -33,7 +33,9 @@ from splatsearch.slam import TrackerConfig
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
 #: Real-sensor mapping settings (see docs/mapping.md for how they were chosen).
-REAL = dict(iters=30, first_iters=60, stride=1, pixel_scale=1.0, fill_holes=True, initial_capacity=1 << 17)
+REAL = dict(iters=30, first_iters=60, stride=2, pixel_scale=2.0, fill_holes=True, keyframe_every=1,
+            initial_capacity=1 << 15)
+REAL_REFINE = 200
 SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15)
 
 
@@ -93,14 +95,16 @@ def main(argv=None) -> int:
             return 1
         seq = datasets.load_sequence(TUM, downscale=a.downscale)
         if a.what == "speed":
-            _run("tum_track_speed", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
+            _run("tum_track_speed", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0,
+                                                     refine=REAL_REFINE), a.out)
             return 0
         if go("tum_gt"):
-            _run("tum_gt", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=0), a.out)
+            _run("tum_gt", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=0, refine=REAL_REFINE), a.out)
         if go("tum_track"):
-            _run("tum_track", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
+            _run("tum_track", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0,
+                                                     refine=REAL_REFINE), a.out)
         if go("tum_gt_holdout"):
-            _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5), a.out)
+            _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5, refine=REAL_REFINE), a.out)
     else:
         seq = datasets.sim_walk(a.seed, a.frames, 320, 240)
         if go("sim_gt"):

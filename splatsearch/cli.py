@@ -101,13 +101,16 @@ def _cmd_map(args: argparse.Namespace) -> int:
         with console.status("loading frames ..."):
             if data:
                 seq = datasets.load_sequence(data, fmt, max_frames=args.frames, downscale=args.downscale,
-                                             require_poses=not args.track, undistort=not args.no_undistort)
+                                             require_poses=not args.track, undistort=not args.no_undistort,
+                                             sync_depth=args.sync_depth)
             else:
                 noise = (args.odometry_noise[0], args.odometry_noise[1]) if args.odometry else None
                 seq = datasets.sim_walk(args.seed, args.frames or 100, args.width, args.height, odometry_noise=noise)
     except (FileNotFoundError, NotADirectoryError, PermissionError) as e:
         print(f"splatsearch: error: {e}", file=sys.stderr)
         return 2
+    if args.sync_depth and args.track:
+        raise ValueError("--sync-depth uses ground-truth motion, which --track must not see")
     if args.odometry and data:
         raise ValueError("--odometry is for simulator walks; datasets carry no odometry")
     real = data is not None
@@ -296,6 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--downscale", type=int, default=1,
                    help="divide dataset image size by this integer (2: 640x480 -> 320x240; default 1)")
     m.add_argument("--no-undistort", action="store_true", help="keep the lens distortion of TUM fr1/fr2 frames")
+    m.add_argument("--sync-depth", action="store_true",
+                   help="TUM with ground-truth poses: move each depth image to its colour image's timestamp "
+                        "(~15 ms later) with the ground-truth motion; not with --track")
     m.add_argument("--width", type=int, default=320, help="simulator image width in pixels (default 320)")
     m.add_argument("--height", type=int, default=240, help="simulator image height in pixels (default 240)")
     m.add_argument("--iters", type=int, default=15, help="mapping Adam steps per frame (default 15)")

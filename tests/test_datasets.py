@@ -311,3 +311,20 @@ def test_map_command_tum_alias(tmp_path):
                  "--out", str(out)]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["format"] == "tum" and s["frames_mapped"] == 2 and s["resolution"] == [160, 120]
+
+
+def test_warp_depth_moves_a_plane():
+    from splatsearch.datasets.base import warp_depth
+
+    K = np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]])
+    d = np.full((48, 64), 2.0, np.float32)
+    d[:, :4] = 0.0
+    np.testing.assert_array_equal(warp_depth(d, K, np.eye(4)), d)
+    back = np.eye(4)
+    back[2, 3] = 0.5  # the target camera is 0.5 m behind: the plane is 2.5 m away, smaller in the image
+    w = warp_depth(d, K, back)
+    assert np.allclose(w[w > 0], 2.5) and 0.5 < np.mean(w > 0) < np.mean(d > 0)
+    side = np.eye(4)
+    side[0, 3] = 0.02  # 2 cm sideways at 2 m with f = 100: one pixel
+    w = warp_depth(d, K, side)
+    assert (w[:, 5] > 0).all() and (w[:, 4] == 0).all()
