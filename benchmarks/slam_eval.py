@@ -33,7 +33,8 @@ from splatsearch.slam import TrackerConfig
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
 #: Real-sensor mapping settings (see docs/mapping.md for how they were chosen).
-REAL = dict(iters=30, first_iters=60, stride=2, pixel_scale=2.0, fill_holes=True, keyframe_every=1,
+REAL = dict(iters=30, first_iters=60, stride=2, pixel_scale=2.0, fill_holes=True, keyframe_every=1, lambda_g=0.3,
+            lr={"means": 2e-4, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "colors": 1e-2},
             initial_capacity=1 << 15)
 REAL_REFINE = 200
 SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15)
@@ -95,8 +96,7 @@ def main(argv=None) -> int:
             return 1
         seq = datasets.load_sequence(TUM, downscale=a.downscale)
         if a.what == "speed":
-            _run("tum_track_speed", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0,
-                                                     refine=REAL_REFINE), a.out)
+            _run("tum_track_speed", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
             return 0
         if go("tum_gt"):
             _run("tum_gt", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=0, refine=REAL_REFINE), a.out)
