@@ -117,7 +117,11 @@ def _cmd_map(args: argparse.Namespace) -> int:
     mcfg = MapperConfig(iters=args.iters, stride=args.stride, isotropic=args.isotropic,
                         pixel_scale=args.pixel_scale if args.pixel_scale else float(args.stride if real else 1),
                         first_iters=args.first_iters, min_depth=args.depth_range[0], max_depth=args.depth_range[1],
-                        fill_holes=real and not args.no_fill_holes, initial_capacity=1 << 15 if real else 16384)
+                        fill_holes=real and not args.no_fill_holes, keyframe_every=args.keyframe_every,
+                        initial_capacity=1 << 15 if real else 16384)
+    if real:  # sensor depth is noisy: weigh it less and keep means steadier (docs/mapping.md)
+        mcfg.lambda_g = 0.3
+        mcfg.lr = dict(mcfg.lr, means=2e-4, colors=1e-2)
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale)
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
                  refine=args.refine)
@@ -309,6 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mapping steps for the first frame (default: --iters)")
     m.add_argument("--refine", type=int, default=0, help="mapping steps over the keyframes after the last frame "
                                                          "(default 0)")
+    m.add_argument("--keyframe-every", type=int, default=5,
+                   help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
     m.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
     m.add_argument("--track-downscale", type=int, default=1,
                    help="track on images this many times smaller (faster; default 1)")
