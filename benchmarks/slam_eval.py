@@ -103,6 +103,9 @@ def main(argv=None) -> int:
         if go("tum_track"):
             _run("tum_track", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0,
                                                      refine=REAL_REFINE), a.out)
+        if go("tum_gt_refined"):  # tracking started from each ground-truth pose (pose refinement)
+            _run("tum_gt_refined", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, gt_prior=True, holdout_every=0,
+                                               refine=REAL_REFINE), a.out)
         if go("tum_gt_holdout"):
             _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5, refine=REAL_REFINE), a.out)
     else:

@@ -123,8 +123,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
         mcfg.lambda_g = 0.3
         mcfg.lr = dict(mcfg.lr, means=2e-4, colors=1e-2)
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale)
+    if args.track_from_gt and not args.track:
+        raise ValueError("--track-from-gt refines poses by tracking: give --track too")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
-                 refine=args.refine)
+                 refine=args.refine, gt_prior=args.track_from_gt)
     for note in seq.notes:
         console.print(f"[dim]{seq.format}: {note}[/dim]")
     cols = (TextColumn("tracking+mapping" if args.track else "mapping"), BarColumn(), MofNCompleteColumn(),
@@ -293,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--track", action="store_true",
                    help="estimate camera poses by tracking against the map (first pose: ground truth if known, "
                         "else identity); ground-truth poses are then used only for ATE")
+    m.add_argument("--track-from-gt", action="store_true",
+                   help="with --track: start each frame's tracking from its ground-truth pose (refines ground "
+                        "truth that is not pixel-exact, e.g. TUM's motion capture)")
     m.add_argument("--odometry", action="store_true",
                    help="simulator only: use the walk's noisy odometry as the tracking prior (with --track)")
     m.add_argument("--odometry-noise", type=float, nargs=2, default=(0.05, 0.01), metavar=("TRANS", "ROT"),

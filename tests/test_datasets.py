@@ -279,6 +279,9 @@ def test_map_command_on_a_dataset_writes_ate_trajectory_and_timing(tmp_path, sou
     s = json.loads((out2 / "summary.json").read_text())
     assert s["tracking"] and "ate" in s and s["timing"]["median_track_s"] > 0
     assert len(s["timing"]["per_frame"]) == N and "train_at_gt_pose" in s
+    assert main(base + ["--track", "--track-from-gt", "--track-iters", "2", "--out", str(out2)]) == 0
+    assert json.loads((out2 / "summary.json").read_text())["ate"]["n"] == N
+    assert main(base + ["--track-from-gt", "--out", str(out2)]) == 2  # needs --track
     # without ground truth, tracking still maps; ATE is not reported
     os.remove(root / "poses.txt")
     out3 = tmp_path / "out3"
