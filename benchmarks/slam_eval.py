@@ -23,8 +23,6 @@ import os
 import sys
 import time
 
-import numpy as np
-
 from splatsearch import datasets
 from splatsearch.map_job import MapJob, map_sequence
 from splatsearch.mapper import MapperConfig

@@ -265,8 +265,8 @@ class FrameResult:
     viewmat: the frame's pose estimate (world-to-camera); status: "mapped", "first",
     "skipped_no_depth" (too little valid depth), "skipped_bad_rgb" (NaN/Inf colour),
     "skipped_bad_pose" (a given pose that is not finite) or "skipped_tracking" (diverged: the
-    pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when tracked; t_track, t_map: seconds;
-    stats: the mapper's update stats when mapped.
+    pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when
+    tracked; t_track, t_map: seconds; stats: the mapper's update stats when mapped.
     """
 
     index: int
