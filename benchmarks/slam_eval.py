@@ -81,11 +81,20 @@ def main(argv=None) -> int:
     p.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
     p.add_argument("--runs", default=None, help="comma-separated subset of the runs (default: all)")
+    p.add_argument("--iters", type=int, default=None, help="TUM mapping steps per frame (default 30)")
+    p.add_argument("--first-iters", type=int, default=None, help="TUM mapping steps on the first frame (default 60)")
+    p.add_argument("--refine", type=int, default=None, help="TUM refinement steps at the end (default 200)")
     p.add_argument("--out", default="runs/slam_eval")
     a = p.parse_args(argv)
     if a.seed >= 1000:
         p.error("seeds >= 1000 are evaluation houses: never tuned on")
     tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale)
+    global REAL_REFINE
+    for key, val in (("iters", a.iters), ("first_iters", a.first_iters)):
+        if val is not None:
+            REAL[key] = val
+    if a.refine is not None:
+        REAL_REFINE = a.refine
     want = None if a.runs is None else set(a.runs.split(","))
     go = lambda n: want is None or n in want  # noqa: E731
     if a.what in ("tum", "speed"):
