@@ -23,8 +23,6 @@ import os
 import sys
 import time
 
-import numpy as np
-
 from splatsearch import datasets
 from splatsearch.map_job import MapJob, map_sequence
 from splatsearch.mapper import MapperConfig
@@ -33,7 +31,10 @@ from splatsearch.slam import TrackerConfig
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
 #: Real-sensor mapping settings (see docs/mapping.md for how they were chosen).
-REAL = dict(iters=30, first_iters=60, stride=1, pixel_scale=1.0, fill_holes=True, initial_capacity=1 << 17)
+REAL = dict(iters=30, first_iters=60, stride=2, pixel_scale=2.0, fill_holes=True, keyframe_every=1, lambda_g=0.3,
+            lr={"means": 2e-4, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "colors": 1e-2},
+            initial_capacity=1 << 15)
+REAL_REFINE = 200
 SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15)
 
 
@@ -80,11 +81,20 @@ def main(argv=None) -> int:
     p.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
     p.add_argument("--runs", default=None, help="comma-separated subset of the runs (default: all)")
+    p.add_argument("--iters", type=int, default=None, help="TUM mapping steps per frame (default 30)")
+    p.add_argument("--first-iters", type=int, default=None, help="TUM mapping steps on the first frame (default 60)")
+    p.add_argument("--refine", type=int, default=None, help="TUM refinement steps at the end (default 200)")
     p.add_argument("--out", default="runs/slam_eval")
     a = p.parse_args(argv)
     if a.seed >= 1000:
         p.error("seeds >= 1000 are evaluation houses: never tuned on")
     tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale)
+    global REAL_REFINE
+    for key, val in (("iters", a.iters), ("first_iters", a.first_iters)):
+        if val is not None:
+            REAL[key] = val
+    if a.refine is not None:
+        REAL_REFINE = a.refine
     want = None if a.runs is None else set(a.runs.split(","))
     go = lambda n: want is None or n in want  # noqa: E731
     if a.what in ("tum", "speed"):
@@ -96,11 +106,15 @@ def main(argv=None) -> int:
             _run("tum_track_speed", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
             return 0
         if go("tum_gt"):
-            _run("tum_gt", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=0), a.out)
+            _run("tum_gt", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=0, refine=REAL_REFINE), a.out)
         if go("tum_track"):
-            _run("tum_track", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
+            _run("tum_track", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0,
+                                                     refine=REAL_REFINE), a.out)
+        if go("tum_gt_refined"):  # tracking started from each ground-truth pose (pose refinement)
+            _run("tum_gt_refined", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, gt_prior=True, holdout_every=0,
+                                               refine=REAL_REFINE), a.out)
         if go("tum_gt_holdout"):
-            _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5), a.out)
+            _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5, refine=REAL_REFINE), a.out)
     else:
         seq = datasets.sim_walk(a.seed, a.frames, 320, 240)
         if go("sim_gt"):

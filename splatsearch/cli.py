@@ -110,26 +110,35 @@ def _cmd_map(args: argparse.Namespace) -> int:
         with console.status("loading frames ..."):
             if data:
                 seq = datasets.load_sequence(data, fmt, max_frames=args.frames, downscale=args.downscale,
-                                             require_poses=not args.track, undistort=not args.no_undistort)
+                                             require_poses=not args.track, undistort=not args.no_undistort,
+                                             sync_depth=args.sync_depth)
             else:
                 noise = (args.odometry_noise[0], args.odometry_noise[1]) if args.odometry else None
                 seq = datasets.sim_walk(args.seed, args.frames or 100, args.width, args.height, odometry_noise=noise)
     except (FileNotFoundError, NotADirectoryError, PermissionError) as e:
         print(f"splatsearch: error: {e}", file=sys.stderr)
         return 2
+    if args.sync_depth and args.track:
+        raise ValueError("--sync-depth uses ground-truth motion, which --track must not see")
     if args.odometry and data:
         raise ValueError("--odometry is for simulator walks; datasets carry no odometry")
     real = data is not None
     mcfg = MapperConfig(iters=args.iters, stride=args.stride, isotropic=args.isotropic,
                         pixel_scale=args.pixel_scale if args.pixel_scale else float(args.stride if real else 1),
                         first_iters=args.first_iters, min_depth=args.depth_range[0], max_depth=args.depth_range[1],
-                        fill_holes=real and not args.no_fill_holes, initial_capacity=1 << 15 if real else 16384)
+                        fill_holes=real and not args.no_fill_holes, keyframe_every=args.keyframe_every,
+                        initial_capacity=1 << 15 if real else 16384)
+    if real:  # sensor depth is noisy: weigh it less and keep means steadier (docs/mapping.md)
+        mcfg.lambda_g = 0.3
+        mcfg.lr = dict(mcfg.lr, means=2e-4, colors=1e-2)
     from splatsearch.cli_config import apply_overrides, config_overrides
 
-    mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))
+    mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale)
+    if args.track_from_gt and not args.track:
+        raise ValueError("--track-from-gt refines poses by tracking: give --track too")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
-                 refine=args.refine)
+                 refine=args.refine, gt_prior=args.track_from_gt)
     for note in seq.notes:
         console.print(f"[dim]{seq.format}: {note}[/dim]")
     cols = (TextColumn("tracking+mapping" if args.track else "mapping"), BarColumn(), MofNCompleteColumn(),
@@ -403,6 +412,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--track", action="store_true",
                    help="estimate camera poses by tracking against the map (first pose: ground truth if known, "
                         "else identity); ground-truth poses are then used only for ATE")
+    m.add_argument("--track-from-gt", action="store_true",
+                   help="with --track: start each frame's tracking from its ground-truth pose (refines ground "
+                        "truth that is not pixel-exact, e.g. TUM's motion capture)")
     m.add_argument("--odometry", action="store_true",
                    help="simulator only: use the walk's noisy odometry as the tracking prior (with --track)")
     m.add_argument("--odometry-noise", type=float, nargs=2, default=(0.05, 0.01), metavar=("TRANS", "ROT"),
@@ -413,6 +425,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--downscale", type=int, default=1,
                    help="divide dataset image size by this integer (2: 640x480 -> 320x240; default 1)")
     m.add_argument("--no-undistort", action="store_true", help="keep the lens distortion of TUM fr1/fr2 frames")
+    m.add_argument("--sync-depth", action="store_true",
+                   help="TUM with ground-truth poses: move each depth image to its colour image's timestamp "
+                        "(~15 ms later) with the ground-truth motion; not with --track")
     m.add_argument("--width", type=int, default=320, help="simulator image width in pixels (default 320)")
     m.add_argument("--height", type=int, default=240, help="simulator image height in pixels (default 240)")
     m.add_argument("--iters", type=int, default=15, help="mapping Adam steps per frame (default 15)")
@@ -420,6 +435,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="mapping steps for the first frame (default: --iters)")
     m.add_argument("--refine", type=int, default=0, help="mapping steps over the keyframes after the last frame "
                                                          "(default 0)")
+    m.add_argument("--keyframe-every", type=int, default=5,
+                   help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
     m.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
     m.add_argument("--track-downscale", type=int, default=1,
                    help="track on images this many times smaller (faster; default 1)")

@@ -30,7 +30,8 @@ class MapJob:
     track: estimate poses (first pose: ground truth when known, else identity). use_odometry:
     use the sequence's odometry as the tracking prior. holdout_every: hold out one frame in N
     (the middle one of each block) for evaluation (0: none). refine: Adam steps over the
-    keyframes after the last frame.
+    keyframes after the last frame. gt_prior: with ``track``, start each frame's tracking from
+    its ground-truth pose (pose refinement of a trajectory that is not pixel-exact).
     """
 
     mapper: MapperConfig
@@ -39,6 +40,7 @@ class MapJob:
     use_odometry: bool = False
     holdout_every: int = 8
     refine: int = 0
+    gt_prior: bool = False
 
 
 def split_holdout(n: int, every: int) -> tuple[list[int], list[int]]:
@@ -56,6 +58,8 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
     stops at the current frame; the summary says so and everything built so far is written."""
     if not job.track and not seq.has_gt:
         raise ValueError(f"{seq.path}: no ground-truth poses; map it with tracking (--track)")
+    if job.gt_prior and not seq.has_gt:
+        raise ValueError(f"{seq.path}: gt_prior needs ground-truth poses")
     if job.use_odometry and seq.odometry is None:
         raise ValueError(f"{seq.path}: the sequence has no odometry")
     train, held = split_holdout(len(seq), job.holdout_every)
@@ -67,7 +71,8 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
             f = seq.frames[i]
             odo = seq.odometry[i] if job.use_odometry else None
             given = f.viewmat if (not job.track or k == 0) else None
-            r = slam.process(f.rgb, f.depth, given, odometry=odo)
+            prior = f.viewmat if (job.track and job.gt_prior) else None
+            r = slam.process(f.rgb, f.depth, given, odometry=odo, prior=prior)
             if progress is not None:
                 progress(r, k + 1, len(train))
         if job.refine:

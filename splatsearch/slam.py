@@ -265,8 +265,8 @@ class FrameResult:
     viewmat: the frame's pose estimate (world-to-camera); status: "mapped", "first",
     "skipped_no_depth" (too little valid depth), "skipped_bad_rgb" (NaN/Inf colour),
     "skipped_bad_pose" (a given pose that is not finite) or "skipped_tracking" (diverged: the
-    pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when tracked; t_track, t_map: seconds;
-    stats: the mapper's update stats when mapped.
+    pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when
+    tracked; t_track, t_map: seconds; stats: the mapper's update stats when mapped.
     """
 
     index: int
@@ -329,7 +329,7 @@ class SLAM:
             return (rel @ last).astype(np.float32)
         return last.astype(np.float32)
 
-    def process(self, rgb, depth, viewmat=None, *, odometry=None) -> FrameResult:
+    def process(self, rgb, depth, viewmat=None, *, odometry=None, prior=None) -> FrameResult:
         """Track (unless disabled) and map one RGB-D frame.
 
         Args:
@@ -338,12 +338,16 @@ class SLAM:
                 only the first frame's is used (its map frame), later ones are ignored.
             odometry: optional (4, 4) world-to-camera pose from odometry (any drifting frame: only
                 its motion between frames is used) as the tracking prior.
+            prior: optional (4, 4) absolute initial guess for tracking (e.g. a ground-truth pose
+                to be refined); it replaces the prediction.
         """
         i = len(self.poses)
         rgb = np.asarray(rgb, np.float32)
         depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         first = not any(r.mapped for r in self.results)
         pred = self.predict(odometry)
+        if prior is not None and np.all(np.isfinite(prior)):
+            pred = np.asarray(prior, np.float32)
         if odometry is not None and np.all(np.isfinite(odometry)):
             self._last_odom = np.asarray(odometry, np.float64)
         res: FrameResult

@@ -118,9 +118,14 @@ def write_folder(root, source, pose_style="matrix"):
 def test_tum_loader_on_real_frames():
     seq = load_sequence(TUM)
     assert seq.format == "tum" and len(seq) == 10 and seq.has_gt
+    raw = load_sequence(TUM, max_frames=1, undistort=False)
     # the project's K has pixel centres at +0.5: TUM's (OpenCV) principal point moves by half a pixel
-    np.testing.assert_allclose(seq.K, [[FX, 0, CX + 0.5], [0, FY, CY + 0.5], [0, 0, 1]], rtol=1e-6)
+    np.testing.assert_allclose(raw.K, [[FX, 0, CX + 0.5], [0, FY, CY + 0.5], [0, 0, 1]], rtol=1e-6)
     assert any("distortion" in n for n in seq.notes)
+    # undistorted frames are zoomed to hold only what the sensor saw: no empty border
+    assert seq.K[0, 0] > FX and seq.K[1, 1] > FY
+    assert (seq.frames[0].depth[:, :3] > 0).any() and (seq.frames[0].depth[-3:] > 0).any()
+    assert not np.allclose(raw.frames[0].rgb, seq.frames[0].rgb)
     d = seq.frames[0].depth
     assert 0.3 < np.median(d[d > 0]) < 3.0 and (d == 0).any()  # real sensor: holes
     c = np.array([np.linalg.inv(f.viewmat)[:3, 3] for f in seq.frames])
@@ -136,8 +141,6 @@ def test_tum_loader_on_real_frames():
     half = load_sequence(TUM, "tum", max_frames=2, downscale=2)
     assert (half.width, half.height) == (320, 240) and half.frames[0].depth.shape == (240, 320)
     np.testing.assert_allclose(half.K[:2], seq.K[:2] / 2, rtol=1e-6)
-    raw = load_sequence(TUM, max_frames=1, undistort=False)
-    assert not np.allclose(raw.frames[0].rgb, seq.frames[0].rgb)
 
 
 @needs_tum
@@ -151,7 +154,7 @@ def test_tum_errors_and_missing_ground_truth(tmp_path):
     os.chmod(root / "groundtruth.txt", 0o644)
     os.chmod(root / "intrinsics.json", 0o644)
     os.remove(root / "intrinsics.json")  # the folder name selects the fr1 calibration
-    seq = load_sequence(str(root), max_frames=2)
+    seq = load_sequence(str(root), max_frames=2, undistort=False)
     np.testing.assert_allclose(seq.K[0, 0], FX)
     assert any("fr1" in n for n in seq.notes)
     os.remove(root / "groundtruth.txt")
@@ -276,6 +279,9 @@ def test_map_command_on_a_dataset_writes_ate_trajectory_and_timing(tmp_path, sou
     s = json.loads((out2 / "summary.json").read_text())
     assert s["tracking"] and "ate" in s and s["timing"]["median_track_s"] > 0
     assert len(s["timing"]["per_frame"]) == N and "train_at_gt_pose" in s
+    assert main(base + ["--track", "--track-from-gt", "--track-iters", "2", "--out", str(out2)]) == 0
+    assert json.loads((out2 / "summary.json").read_text())["ate"]["n"] == N
+    assert main(base + ["--track-from-gt", "--out", str(out2)]) == 2  # needs --track
     # without ground truth, tracking still maps; ATE is not reported
     os.remove(root / "poses.txt")
     out3 = tmp_path / "out3"
@@ -308,3 +314,20 @@ def test_map_command_tum_alias(tmp_path):
                  "--out", str(out)]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["format"] == "tum" and s["frames_mapped"] == 2 and s["resolution"] == [160, 120]
+
+
+def test_warp_depth_moves_a_plane():
+    from splatsearch.datasets.base import warp_depth
+
+    K = np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]])
+    d = np.full((48, 64), 2.0, np.float32)
+    d[:, :4] = 0.0
+    np.testing.assert_array_equal(warp_depth(d, K, np.eye(4)), d)
+    back = np.eye(4)
+    back[2, 3] = 0.5  # the target camera is 0.5 m behind: the plane is 2.5 m away, smaller in the image
+    w = warp_depth(d, K, back)
+    assert np.allclose(w[w > 0], 2.5) and 0.5 < np.mean(w > 0) < np.mean(d > 0)
+    side = np.eye(4)
+    side[0, 3] = 0.02  # 2 cm sideways at 2 m with f = 100: one pixel
+    w = warp_depth(d, K, side)
+    assert (w[:, 5] > 0).all() and (w[:, 4] == 0).all()

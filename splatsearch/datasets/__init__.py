@@ -53,7 +53,8 @@ def detect_format(path: str) -> str:
 
 
 def load_sequence(path: str, format: str = "auto", *, max_frames: int | None = None, stride: int = 1,
-                  downscale: int = 1, require_poses: bool = True, undistort: bool = True) -> RGBDSequence:
+                  downscale: int = 1, require_poses: bool = True, undistort: bool = True,
+                  sync_depth: bool = False) -> RGBDSequence:
     """Load an RGB-D recording.
 
     Args:
@@ -64,6 +65,8 @@ def load_sequence(path: str, format: str = "auto", *, max_frames: int | None = N
         require_poses: without a ground-truth pose file raise FileNotFoundError; if False the
             frames get ``viewmat=None`` (map them with tracking).
         undistort: remove calibrated lens distortion where the layout has it (TUM fr1/fr2, folder).
+        sync_depth: TUM only: move depth to the colour timestamps with the ground-truth motion
+            (see :func:`~splatsearch.datasets.tum.load_tum`).
     """
     if format == "auto":
         format = detect_format(path)
@@ -72,6 +75,10 @@ def load_sequence(path: str, format: str = "auto", *, max_frames: int | None = N
     kw = {"max_frames": max_frames, "stride": stride, "downscale": downscale, "require_poses": require_poses}
     if format in ("tum", "folder"):
         kw["undistort"] = undistort
+    if sync_depth:
+        if format != "tum":
+            raise ValueError(f"sync_depth is for TUM sequences (depth and colour timestamps), not {format}")
+        kw["sync_depth"] = True
     return _LOADERS[format](path, **kw)
 
 

@@ -141,6 +141,9 @@ def c2w_to_viewmat(c2w: np.ndarray) -> np.ndarray:
 class Resampler:
     """Undistorts (radtan k1 k2 p1 p2 k3) and resizes colour and depth to a pinhole camera.
 
+    The undistorted camera is zoomed so that it sees only what the sensor saw (OpenCV's
+    ``getOptimalNewCameraMatrix`` with alpha 0): its ``K`` differs from the calibration's.
+
     Depth is remapped with nearest-neighbour sampling (averaging across an object boundary would
     invent depth between the two surfaces) and resized by taking, per output pixel, the nearest
     source pixel. Colour uses bilinear remapping and area resizing.
@@ -155,13 +158,19 @@ class Resampler:
         d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).reshape(-1)
         self.distorted = bool(np.any(d != 0))
         self.maps = None
+        self.K = self.src_K.copy()
         if self.distorted:
-            # OpenCV works in its own pixel convention: shift the principal point back by 0.5
+            # OpenCV works in its own pixel convention: shift the principal point back by 0.5.
+            # alpha=0 zooms in until every output pixel samples inside the source image: an
+            # undistorted frame has no empty border, which no view could explain consistently.
             Kcv = self.src_K.astype(np.float64).copy()
             Kcv[:2, 2] -= 0.5
-            self.maps = cv2.initUndistortRectifyMap(Kcv, d, None, Kcv, self.src_size, cv2.CV_32FC1)
+            newK, _ = cv2.getOptimalNewCameraMatrix(Kcv, d, self.src_size, 0.0, self.src_size)
+            self.maps = cv2.initUndistortRectifyMap(Kcv, d, None, newK, self.src_size, cv2.CV_32FC1)
+            self.K = newK.astype(np.float32)
+            self.K[:2, 2] += 0.5
         s = self.downscale
-        self.K = self.src_K.copy()
+        self.K = self.K.copy()
         self.K[:2] /= s  # with centres at +0.5, scaling a pixel grid scales cx, cy exactly
         self.width, self.height = width // s, height // s
 
@@ -172,13 +181,46 @@ class Resampler:
             img = cv2.resize(img, (self.width, self.height), interpolation=cv2.INTER_AREA)
         return np.ascontiguousarray(np.clip(img, 0.0, 1.0), np.float32)
 
-    def depth(self, d: np.ndarray) -> np.ndarray:
+    @property
+    def full_K(self) -> np.ndarray:
+        """K of the undistorted image before downscaling."""
+        K = self.K.copy()
+        K[:2] *= self.downscale
+        return K
+
+    def depth(self, d: np.ndarray, motion: np.ndarray | None = None) -> np.ndarray:
+        """Undistorted, resized depth; ``motion`` (4, 4) moves it from the depth camera's pose
+        to the colour camera's (see :func:`warp_depth`) before resizing."""
         if self.maps is not None:
             d = cv2.remap(d, *self.maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        if motion is not None:
+            d = warp_depth(d, self.full_K, motion)
         if self.downscale > 1:
             s = self.downscale
             d = d[s // 2::s, s // 2::s]
         return np.ascontiguousarray(d, np.float32)
+
+
+def warp_depth(depth: np.ndarray, K: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """Depth (H, W) seen from another pose: pixels are back-projected, moved by ``motion``
+    (4, 4, depth-camera coordinates to target-camera coordinates), projected to their nearest
+    pixel and z-buffered (the nearest surface wins). Pixels nothing lands on become invalid."""
+    H, W = depth.shape
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u].astype(np.float64)
+    K = np.asarray(K, np.float64)
+    x = (u + 0.5 - K[0, 2]) / K[0, 0] * z
+    y = (v + 0.5 - K[1, 2]) / K[1, 1] * z
+    p = np.stack([x, y, z], 1) @ motion[:3, :3].T + motion[:3, 3]
+    ok = p[:, 2] > 1e-3
+    p = p[ok]
+    u2 = np.floor(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
+    v2 = np.floor(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
+    inside = (u2 >= 0) & (u2 < W) & (v2 >= 0) & (v2 < H)
+    out = np.full(H * W, np.inf)
+    np.minimum.at(out, v2[inside] * W + u2[inside], p[inside, 2])
+    out[~np.isfinite(out)] = 0.0
+    return out.reshape(H, W).astype(np.float32)
 
 
 def sorted_files(folder: str, suffixes: tuple[str, ...], what: str) -> list[str]:
@@ -206,9 +248,11 @@ def select(items: list, max_frames: int | None, stride: int) -> list:
 
 
 def make_frame(rgb_path: str, depth_path: str, resampler: Resampler, depth_scale: float, viewmat,
-               invalid: int | None = None, depth_size: tuple[int, int] | None = None) -> Frame:
+               invalid: int | None = None, depth_size: tuple[int, int] | None = None,
+               depth_motion: np.ndarray | None = None) -> Frame:
     """Read, check and resample one frame. ``depth_size``: (W, H) of the depth when it is not the
-    colour's (ScanNet): colour is then resized to it before resampling."""
+    colour's (ScanNet): colour is then resized to it before resampling. ``depth_motion``: see
+    :meth:`Resampler.depth`."""
     W, H = resampler.src_size
     rgb = read_rgb(rgb_path)
     if depth_size is not None and rgb.shape[:2] != (H, W):
@@ -217,4 +261,4 @@ def make_frame(rgb_path: str, depth_path: str, resampler: Resampler, depth_scale
     depth = read_depth(depth_path, depth_scale, invalid)
     check_size(depth_path, depth, W, H)
     vm = None if viewmat is None else np.asarray(viewmat, np.float32)
-    return Frame(resampler.rgb(rgb), resampler.depth(depth), vm)
+    return Frame(resampler.rgb(rgb), resampler.depth(depth, depth_motion), vm)

@@ -119,7 +119,8 @@ def tum_intrinsics(path: str) -> tuple[dict, str]:
 
 
 def load_tum(path: str, max_frames: int | None = None, stride: int = 1, max_dt: float = 0.02, *,
-             downscale: int = 1, undistort: bool = True, require_poses: bool = True) -> RGBDSequence:
+             downscale: int = 1, undistort: bool = True, require_poses: bool = True,
+             sync_depth: bool = False) -> RGBDSequence:
     """Load a TUM RGB-D folder.
 
     Args:
@@ -130,6 +131,10 @@ def load_tum(path: str, max_frames: int | None = None, stride: int = 1, max_dt: 
         undistort: remove the calibrated lens distortion (fr1, fr2).
         require_poses: without groundtruth.txt raise FileNotFoundError; if False, frames get
             ``viewmat=None`` (to be tracked).
+        sync_depth: the Kinect takes depth ~15 ms before colour; move each depth image to the
+            colour image's instant with the ground-truth motion between the two timestamps
+            (a pixel or two while the camera moves). Uses ground truth: only for mapping with
+            ground-truth poses, never when the poses are to be tracked.
 
     Frames outside the ground truth's time span are skipped (and counted in ``notes``).
     """
@@ -171,16 +176,26 @@ def load_tum(path: str, max_frames: int | None = None, stride: int = 1, max_dt: 
             if c2w is None:
                 no_gt += 1
                 continue
-        pairs.append((t, vals[0], depths[j][1][0], c2w))
+        motion = None
+        if sync_depth and c2w is not None:
+            c2w_d = interpolate_pose(gt, dts[j])
+            if c2w_d is not None:  # depth-camera coordinates -> colour-camera coordinates
+                motion = np.linalg.inv(c2w) @ c2w_d
+        pairs.append((t, vals[0], depths[j][1][0], c2w, motion))
     pairs = select(pairs, max_frames, stride)
     if not pairs:
         raise ValueError(f"{path}: no RGB frame could be associated with a depth image"
                          + (" and the ground truth" if gt is not None else "") + f" within {max_dt} s")
+    if sync_depth and gt is None:
+        raise ValueError(f"{path}: sync_depth needs ground truth (groundtruth.txt)")
     frames = [make_frame(os.path.join(path, rf), os.path.join(path, df), res, intr["depth_scale"],
-                         None if c2w is None else c2w_to_viewmat(c2w)) for _, rf, df, c2w in pairs]
+                         None if c2w is None else c2w_to_viewmat(c2w), depth_motion=mo)
+              for _, rf, df, c2w, mo in pairs]
     notes = [f"intrinsics: {source}"]
     if res.distorted:
         notes.append("lens distortion removed (radtan)")
+    if sync_depth:
+        notes.append("depth moved to the colour timestamps with the ground-truth motion")
     if no_gt:
         notes.append(f"{no_gt} frames outside the ground truth's time span skipped")
     return RGBDSequence(frames, res.K, res.width, res.height, "tum", path, np.array([p[0] for p in pairs]),
