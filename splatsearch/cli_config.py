@@ -65,7 +65,7 @@ def field_help(cls: type, name: str) -> str:
     doc = " ".join((cls.__doc__ or "").split())
     m = re.search(rf"(?:^|[.;:]\s)([^.;]*?``{re.escape(name)}``[^;]*?)(?:[.;](?:\s|$)|$)", doc)
     if m is None:
-        m = re.search(rf"(?:^|\s){re.escape(name)}:\s([^:]*?)(?=\s\w+:\s|$)", doc)
+        m = re.search(rf"(?:^|\s){re.escape(name)}:\s(.*?)(?=\s[a-z_]+:\s|$)", doc)
     if m is None:
         return ""
     text = m.group(1).strip().replace("``", "")

@@ -36,6 +36,20 @@ from splatsearch.rgbd import clean_depth, fill_depth_holes
 class MapperConfig:
     """Mapper settings; defaults follow SplaTAM where the issue names them.
 
+    Optimisation: ``iters`` Adam steps per frame over a window of ``window`` keyframes; a frame
+    becomes a keyframe every ``keyframe_every`` frames; ``window_select`` picks the window's
+    keyframes ("overlap": those that see most of the current frame; "recent": the latest);
+    ``current_frac`` of the steps use the current frame, the rest a window keyframe; ``lr`` is
+    the Adam learning rate per parameter group (a dict over means, log_scales, quats,
+    opacity_logits, colors). Loss (eq 7-9): ``lambda_p`` weighs the photometric term, itself
+    ``w_l1`` L1 + (1 - ``w_l1``) (1 - SSIM), and ``lambda_g`` the depth L1 (metres).
+    Densification (eq 10): pixels where the silhouette is below ``tau_o`` or the observed depth
+    is in front of the rendered one by more than ``k`` times the median depth error get a new
+    Gaussian, every ``stride``-th pixel. Pruning: ``prune_opacity`` (opacity below it) and
+    ``prune_scale`` (metres; larger Gaussians go). ``isotropic``: one scale per Gaussian.
+    ``initial_capacity``: Gaussian slots before the first doubling. ``seed``: the keyframe
+    sampling seed.
+
     ``submap``: optimise only the Gaussians the window's frames can see (their means inside a
     view grown by ``submap_margin`` of the image size on each side), so a step costs what the
     visible part of the map costs, not the whole house.

@@ -78,3 +78,13 @@ def test_map_flags_reach_the_mapper_config_and_are_checked():
     assert cfg.lr["means"] == 2e-3 and cfg.first_iters is None
     with pytest.raises(ValueError):
         apply_overrides(MapperConfig(), {"window_select": "nonsense"})
+
+
+def test_every_config_field_is_documented_in_its_class():
+    from splatsearch.agent.config import AgentConfig
+    from splatsearch.mapper import MapperConfig
+    from splatsearch.search.local_map import LocalMapConfig
+
+    for cls, skip in ((MapperConfig, ()), (AgentConfig, ("variant",)), (LocalMapConfig, ())):
+        bare = [f.name for f in dataclasses.fields(cls) if f.name not in skip and not field_help(cls, f.name)]
+        assert bare == [], (cls.__name__, bare)

@@ -38,7 +38,7 @@ class LocalMapConfig:
         capacity: initial Gaussian capacity (grows by doubling).
         min_separation: metres; an observation closer than this to a kept one (camera centres)
             with a heading within 20 degrees replaces it instead of adding a viewpoint.
-        surface_init: start Gaussians as flat ellipses in the surface plane
+        surface_init: Gaussians start as flat ellipses in the surface plane
             (:attr:`splatsearch.mapper.MapperConfig.surface_init`).
     """
 
