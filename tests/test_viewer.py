@@ -251,3 +251,34 @@ def test_map_viewer_panel_controls_the_splats():
         viewer.close()
     with pytest.raises(ValueError, match="no active"):
         MapViewer(empty_map(8), port=_free_port())
+
+
+def test_viewer_counts_steps_as_the_cli_does(tmp_path, monkeypatch):
+    """The viewer's status line and score plot count steps taken, like the progress bar and
+    summary.json (they used to be one behind)."""
+    import json
+
+    import splatsearch.viewer as viewer_module
+    from splatsearch.demo import DemoOptions, run_demo
+
+    statuses, scores = [], []
+
+    class RecordingViewer:
+        url = "http://127.0.0.1:0"
+
+        def __init__(self, **kw):
+            pass
+
+        def __getattr__(self, name):  # every layer setter: accept and ignore
+            return lambda *a, **kw: None
+
+        def set_status(self, text):
+            statuses.append(text)
+
+        def add_match_score(self, step, score):
+            scores.append(step)
+
+    monkeypatch.setattr(viewer_module, "SearchViewer", RecordingViewer)
+    summary = run_demo(DemoOptions(seed=3, max_steps=3, out=str(tmp_path), hold=False))
+    assert summary["steps"] == 3 == json.loads((tmp_path / "summary.json").read_text())["steps"]
+    assert statuses[-1].startswith("**step 3**") and scores == [1, 2, 3]
