@@ -193,12 +193,6 @@ def _require(module: str, pip_name: str, what: str) -> None:
                                f"(pip install {pip_name}); the offline default is ColorTextureEncoder")
 
 
-def _offline_env() -> None:
-    # make hub-aware libraries fail instead of reaching for the network
-    for k in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
-        os.environ.setdefault(k, "1")
-
-
 class OpenCLIPEncoder:
     """CLIP image tower from open_clip, with weights from a local checkpoint file.
 
@@ -220,7 +214,6 @@ class OpenCLIPEncoder:
     def load(self) -> None:
         if self._model is not None:
             return
-        _offline_env()
         import open_clip  # heavy: imported only here
         model, _, preprocess = open_clip.create_model_and_transforms(self.model_name, pretrained=self.checkpoint,
                                                                      device=self.device)
@@ -259,7 +252,6 @@ class TransformersImageEncoder:
     def load(self) -> None:
         if self._model is not None:
             return
-        _offline_env()
         import transformers  # heavy: imported only here
 
         self._processor = transformers.AutoImageProcessor.from_pretrained(self.model_dir, local_files_only=True)
