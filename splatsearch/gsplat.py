@@ -122,7 +122,7 @@ def rasterization(
         raise ValueError(f"viewmats must have shape (C, 4, 4), got {tuple(viewmats.shape)}")
     if Ks.ndim != 3 or Ks.shape[1:] != (3, 3) or Ks.shape[0] != viewmats.shape[0]:
         raise ValueError(f"Ks must have shape ({viewmats.shape[0]}, 3, 3), got {tuple(Ks.shape)}")
-    C, N = viewmats.shape[0], means.shape[0]
+    C = viewmats.shape[0]
     colors = None if colors is None else jnp.asarray(colors, jnp.float32)
     if colors is not None and sh_degree is not None:
         if colors.ndim not in (3, 4) or colors.shape[-1] != 3:
