@@ -24,7 +24,7 @@ Frames: world x, y in metres, z up, yaw counter-clockwise; the robot frame is x 
 
 from __future__ import annotations
 
-import importlib
+from splatsearch._lazy import lazy_exports
 
 #: public name -> the submodule that defines it
 _EXPORTS = {
@@ -116,14 +116,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str):
-    mod = _EXPORTS.get(name)
-    if mod is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

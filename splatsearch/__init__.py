@@ -10,9 +10,9 @@ The public names are imported on first use, so that ``import splatsearch.cli`` (
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
+from splatsearch._lazy import lazy_exports
 from splatsearch._version import __version__
 
 _LAZY = {
@@ -28,13 +28,4 @@ if TYPE_CHECKING:
     from splatsearch.rasterization import RENDER_MODES, RasterOutput, rasterize, rasterize_top_ids
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'splatsearch' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

@@ -12,7 +12,7 @@ heavy imports (``variants``); the other names load on first use.
 
 from __future__ import annotations
 
-import importlib
+from splatsearch._lazy import lazy_exports
 
 from .variants import VARIANTS  # noqa: F401 - light, read by the CLI parser
 
@@ -27,14 +27,4 @@ _EXPORTS = {
 __all__ = sorted([*_EXPORTS, "VARIANTS"])
 
 
-def __getattr__(name: str):
-    mod = _EXPORTS.get(name)
-    if mod is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
