@@ -694,3 +694,19 @@ def test_encoder_appearance_wraps_an_image_encoder(env):
     assert m.similarity(s1, m.signature(fa1.rgb, np.zeros((H, W), bool))) == 0.0
     with pytest.raises(TypeError):
         EncoderAppearance(object())
+
+
+def test_ransac_count_is_reproducible_and_leaves_opencvs_global_rng_alone():
+    rng = np.random.default_rng(3)
+    pa = rng.uniform(0, 300, (40, 2)).astype(np.float32)
+    pb = (pa + rng.normal(0, 1.0, pa.shape)).astype(np.float32)
+    pb[:15] = rng.uniform(0, 300, (15, 2))  # outliers, so RANSAC has to sample
+    counts = []
+    for seed in (0, 7, 12345):
+        cv2.setRNGSeed(seed)
+        counts.append(search.ransac_inliers(pa, pb))
+        after = cv2.randu(np.zeros(4, np.float64), 0.0, 1.0).copy()
+        cv2.setRNGSeed(seed)
+        untouched = cv2.randu(np.zeros(4, np.float64), 0.0, 1.0).copy()
+        assert np.array_equal(after, untouched), "the count reseeded or drew from OpenCV's global RNG"
+    assert len(set(counts)) == 1 and 20 <= counts[0] <= 40

@@ -88,7 +88,8 @@ def ransac_inliers(pts_a: np.ndarray, pts_b: np.ndarray, model: str = "fundament
         raise ValueError(f"point lists differ in length: {len(pa)} vs {len(pb)}")
     if len(pa) < max(int(min_matches), 4 if model == "homography" else 8):
         return 0
-    cv2.setRNGSeed(0)  # RANSAC samples with OpenCV's global RNG; fix it so counts are reproducible
+    # OpenCV's FM_RANSAC / RANSAC estimators draw from their own fixed-seed RNG, not cv::theRNG(),
+    # so the count is reproducible without touching the caller's global OpenCV RNG.
     if model == "homography":
         M, inl = cv2.findHomography(pa, pb, cv2.RANSAC, float(thresh), maxIters=2000, confidence=0.999)
     else:
@@ -112,8 +113,8 @@ class SIFTMatcher:
 
     The goal's features are cached per matcher instance (keyed by a hash of the image, the 8
     latest goals), since the same goal is matched against every novel view of every object.
-    Each count seeds OpenCV's global RNG (``cv2.setRNGSeed(0)``) before RANSAC so that counts are
-    reproducible; code that draws from OpenCV's RNG itself sees that stream reset.
+    Counts are reproducible (OpenCV's RANSAC estimators use their own fixed-seed generator) and a
+    count neither reseeds nor draws from OpenCV's global RNG.
     """
 
     def __init__(self, ratio: float = 0.75, ransac_thresh: float = 3.0, min_matches: int = 8,
