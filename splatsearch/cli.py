@@ -494,6 +494,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="output folder: results.json (after every episode), summary.json, summary.md")
     e.set_defaults(func=_cmd_eval)
 
+    from splatsearch.vcicn.cli import add_parser as _add_vcicn_parser
+
+    _add_vcicn_parser(sub)
+
     v = sub.add_parser("view", help="open a saved map in the viewer")
     v.add_argument("map", help="a .ply (INRIA layout) or .npz map")
     v.add_argument("--port", type=port_number, default=8080,
