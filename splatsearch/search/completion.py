@@ -113,7 +113,8 @@ def build_model(cfg: VCICNConfig):
             b = ConvBlock(4 * f)(down(s2))
             hb, wb, D = H // 8, W // 8, 4 * f
             n = hb * wb
-            pos = self.param("pos", nn.initializers.normal(0.02), (n, D))
+            # float32 whatever jax_enable_x64 says: the weights file stores float32
+            pos = self.param("pos", lambda k, s: nn.initializers.normal(0.02)(k, s, jnp.float32), (n, D))
             cam = nn.Dense(D)(nn.gelu(nn.Dense(64)(cams)))  # (B, V, D)
             tok = b.reshape(B, V, n, D) + pos[None, None] + cam[:, :, None, :]
             tok = tok.reshape(B, V * n, D)
@@ -141,7 +142,9 @@ def init_params(cfg: VCICNConfig, seed: int = 0) -> Any:
 
     model = build_model(cfg)
     x = jnp.zeros((1, 2, cfg.height, cfg.width, IN_CHANNELS), jnp.float32)
-    return model.init(jax.random.PRNGKey(seed), x, jnp.zeros((1, 2, CAM_FEATURES)), jnp.ones((1, 2), bool))
+    # one compiled program rather than an eager op-by-op init (many small compiles)
+    return jax.jit(model.init)(jax.random.PRNGKey(seed), x, jnp.zeros((1, 2, CAM_FEATURES), jnp.float32),
+                               jnp.ones((1, 2), bool))
 
 
 # -- inputs -----------------------------------------------------------------------------------

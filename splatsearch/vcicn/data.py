@@ -218,6 +218,8 @@ def object_sample(env, obj, rng: np.random.Generator, cfg: DataConfig, *, map_se
     g = _goal_style_cameras(env, obj, rng, cfg.goal_views, cfg)
     cams += g
     goal_style += [True] * len(g)
+    # the cameras are stored as float32: both renders use exactly the stored camera
+    cams = [np.asarray(c, np.float32).astype(np.float64) for c in cams]
     gts, keep = [], []
     for vm in cams:
         f = env.renderer.render(vm, env.K, cfg.width, cfg.height, max_depth=env.max_depth)
