@@ -56,7 +56,7 @@ def add_parser(sub) -> None:
     t.add_argument("--lr", type=_positive_float, default=2e-3, help="peak learning rate (default: 2e-3)")
     t.add_argument("--size", default="64x48", help="training resolution WxH in pixels, both divisible by 8 "
                                                    "(default: 64x48)")
-    t.add_argument("--width", type=_positive_int, default=24, help="channels of the first U-Net level (default: 24)")
+    t.add_argument("--width", type=_positive_int, default=16, help="channels of the first U-Net level, a multiple of 8 (default: 16)")
     t.add_argument("--eval-every", type=_positive_int, default=200,
                    help="steps between validation passes and checkpoints (default: 200)")
     t.add_argument("--patience", type=_positive_int, default=6,

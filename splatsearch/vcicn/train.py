@@ -50,7 +50,7 @@ class TrainConfig:
     lr: float = 2e-3
     width: int = 64
     height: int = 48
-    features: int = 24
+    features: int = 16
     eval_every: int = 200
     patience: int = 6
     max_minutes: float = 60.0
