@@ -463,7 +463,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="viewer TCP port on 127.0.0.1, 0..65535; a busy port moves on to the next free one")
     d.add_argument("--no-viewer", action="store_true", help="headless: no viser server")
     d.add_argument("--exit-when-done", action="store_true", help="close the viewer when the episode ends")
-    d.add_argument("--variant", choices=VARIANTS, default="splatsearch", help="the full system or one of its ablations")
+    from splatsearch.agent.variants import VARIANT_ALIASES
+
+    d.add_argument("--variant", choices=VARIANTS + tuple(VARIANT_ALIASES), default="splatsearch",
+                   help="the full system or one of its ablations (no_inpaint is an alias of no_vcicn)")
     d.add_argument("--max-steps", type=int, default=None, help="step cap (default: the episode's, 1000)")
     d.add_argument("--out", default="runs/demo", help="output directory (map.ply, trajectory and summary)")
     _add_plugin_flags(d)
@@ -478,7 +481,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     add_executor_args(e, default_workers=None)
     e.add_argument("--variants", default=None,
-                   help=f"comma-separated subset of {','.join(VARIANTS)} (default: all five)")
+                   help=f"comma-separated subset of {','.join(VARIANTS)} (no_inpaint: alias of no_vcicn; "
+                        f"default: all {len(VARIANTS)})")
     e.add_argument("--max-steps", type=int, default=None,
                    help="step cap per episode, in agent actions (default: the episode's, 1000)")
     _add_plugin_flags(e)
@@ -493,6 +497,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     e.add_argument("--out", default="runs/eval",
                    help="output folder: results.json (after every episode), summary.json, summary.md")
     e.set_defaults(func=_cmd_eval)
+
+    from splatsearch.vcicn.cli import add_parser as _add_vcicn_parser
+
+    _add_vcicn_parser(sub)
 
     v = sub.add_parser("view", help="open a saved map in the viewer")
     v.add_argument("map", help="a .ply (INRIA layout) or .npz map")

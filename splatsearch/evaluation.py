@@ -167,9 +167,13 @@ def evaluate(split: str = "val-hard", n: int = 50, seed: int = 0, variants=VARIA
     (``result`` None) or ends, with the :class:`~splatsearch.parallel.Counts` of this run (done,
     running, failed; ``total`` includes resumed episodes).
     """
-    bad = [v for v in variants if v not in VARIANTS]
+    from splatsearch.agent.variants import VARIANT_ALIASES
+
+    bad = [v for v in variants if v not in VARIANTS and v not in VARIANT_ALIASES]
     if bad:
-        raise ValueError(f"unknown variant(s) {bad}; expected some of {VARIANTS}")
+        raise ValueError(f"unknown variant(s) {bad}; expected some of {VARIANTS} (aliases: {VARIANT_ALIASES})")
+    # an alias runs (and is recorded as) the variant it names, so results stay comparable
+    variants = list(dict.fromkeys(VARIANT_ALIASES.get(v, v) for v in variants))
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     overrides = dict(agent_overrides or {})

@@ -23,6 +23,8 @@ detector    ``sim``                             :class:`~splatsearch.search.SimD
 detector    ``yolo:PATH[,sam=PATH]``            :class:`~splatsearch.search.UltralyticsDetector`
 matcher     ``sift``                            :class:`~splatsearch.search.SIFTMatcher`
 matcher     ``loftr:PATH``                      :class:`~splatsearch.search.LoFTRMatcher`
+inpainter   ``auto``                            ``vcicn`` when the package ships its weights, else ``opencv``
+inpainter   ``vcicn[:PATH]``                    :class:`~splatsearch.search.completion.VCICNInpainter`
 inpainter   ``opencv``                          :class:`~splatsearch.search.OpenCVInpainter`
 inpainter   ``diffusion:PATH``                  :class:`~splatsearch.search.DiffusionInpainter`
 encoder     ``colortexture``                    :class:`~splatsearch.nav.encoders.ColorTextureEncoder`
@@ -49,6 +51,7 @@ __all__ = [
     "make_detector",
     "make_matcher",
     "make_inpainter",
+    "resolve_inpainter_spec",
     "make_encoder",
 ]
 
@@ -58,7 +61,9 @@ DETECTOR_HELP = ("goal-class detector: 'sim' (the simulator's ground-truth masks
 MATCHER_HELP = ("goal-image matcher: 'sift[,contrast_threshold=0.04][,ratio=0.75]' (OpenCV SIFT + RANSAC; "
                 "default) or 'loftr:PATH[,conf_thresh=0.5][,max_side=640][,device=cpu]' (a kornia LoFTR "
                 "checkpoint)")
-INPAINTER_HELP = ("novel-view inpainter: 'opencv[,method=telea]' (default) or 'diffusion:DIR[,prompt=TEXT]"
+INPAINTER_HELP = ("novel-view completion: 'auto' (default: the VCICN with the weights shipped in the package, "
+                  "or OpenCV when none are shipped), 'vcicn[:FILE.npz]' (the multi-view completion network; "
+                  "FILE from `splatsearch vcicn train`), 'opencv[,method=telea]' or 'diffusion:DIR[,prompt=TEXT]"
                   "[,num_inference_steps=25][,device=cpu]' (a local diffusers inpainting pipeline directory)")
 ENCODER_HELP = ("image encoder for the value map: 'colortexture' (default), 'openclip:FILE[,model_name=ViT-B-32]' "
                 "or 'transformers:DIR' (a CLIP / SigLIP / BLIP-2 save_pretrained directory)")
@@ -122,7 +127,7 @@ def parse_spec(spec: str) -> PluginSpec:
 @dataclass(frozen=True)
 class _Kind:
     build: Callable[..., Any]
-    needs_path: bool
+    needs_path: bool | None  # None: the path is optional
     options: tuple[str, ...]
     path_is_dir: bool | None = False  # None: a file or a directory
 
@@ -133,9 +138,9 @@ def _build(what: str, kinds: dict[str, _Kind], spec: str, help_text: str, **extr
     if k is None:
         raise ValueError(f"unknown {what} kind {ps.kind!r} in {spec!r}; known: {', '.join(sorted(kinds))}. "
                          f"Usage: {help_text}")
-    if k.needs_path and ps.path is None:
+    if k.needs_path is True and ps.path is None:
         raise ValueError(f"{what} kind {ps.kind!r} needs a local path: '{ps.kind}:PATH' (got {spec!r})")
-    if not k.needs_path and ps.path is not None:
+    if k.needs_path is False and ps.path is not None:
         raise ValueError(f"{what} kind {ps.kind!r} takes no path (got {spec!r})")
     bad = sorted(set(ps.options) - set(k.options))
     if bad:
@@ -238,15 +243,39 @@ def _diffusion_inpainter(path, **opts):
     return DiffusionInpainter(path, **opts)
 
 
+def _vcicn_inpainter(path=None, **opts):
+    from splatsearch.search.completion import VCICNInpainter
+
+    return VCICNInpainter(path, **opts)
+
+
+def _auto_inpainter(**opts):
+    return _build("inpainter", _INPAINTERS, resolve_inpainter_spec("auto"), INPAINTER_HELP)
+
+
 _INPAINTERS = {
+    "auto": _Kind(_auto_inpainter, False, ()),
+    "vcicn": _Kind(_vcicn_inpainter, None, ("sha256",)),
     "opencv": _Kind(_opencv_inpainter, False, ("method", "radius", "max_side")),
     "diffusion": _Kind(_diffusion_inpainter, True, ("prompt", "num_inference_steps", "guidance_scale", "strength",
                                                     "device", "torch_dtype", "seed"), path_is_dir=True),
 }
 
 
+def resolve_inpainter_spec(spec: str) -> str:
+    """``spec`` with ``auto`` replaced: ``vcicn`` when the package ships VCICN weights, else
+    ``opencv`` (checks that the file is present; loads nothing)."""
+    if parse_spec(spec).kind != "auto":
+        return spec
+    from splatsearch.search.completion import shipped_weights_available
+
+    return "vcicn" if shipped_weights_available() else "opencv"
+
+
 def make_inpainter(spec: str):
-    """An :class:`~splatsearch.search.Inpainter` from ``spec`` ('opencv' or 'diffusion:DIR'...)."""
+    """An :class:`~splatsearch.search.Inpainter` from ``spec`` ('auto', 'vcicn[:FILE]', 'opencv' or
+    'diffusion:DIR'...). 'vcicn' without a path reads the shipped weights and checks their
+    checksum here (a corrupt file fails before any worker starts)."""
     return _build("inpainter", _INPAINTERS, spec, INPAINTER_HELP)
 
 

@@ -32,7 +32,7 @@ def test_config_validation():
         AgentConfig(variant="oracle")
     with pytest.raises(ValueError):
         AgentConfig(map_every=0)
-    assert VARIANTS == ("splatsearch", "no_nvsm", "no_inpaint", "nearest_frontier", "gaussnav")
+    assert VARIANTS == ("splatsearch", "no_nvsm", "no_vcicn", "opencv_inpaint", "nearest_frontier", "gaussnav")
 
 
 def test_variants_resolve_to_explicit_switches():

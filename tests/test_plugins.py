@@ -131,7 +131,7 @@ def test_model_kinds_build_lazily_from_local_files(tmp_path):
     (make_matcher, "loftr", ValueError, "needs a local path"),
     (make_matcher, "loftr:/nonexistent/loftr.ckpt", FileNotFoundError, "file not found"),
     (make_matcher, "sift,sam=/x", ValueError, "unknown option"),
-    (make_inpainter, "lama:/x", ValueError, "known: diffusion, opencv"),
+    (make_inpainter, "lama:/x", ValueError, "known: auto, diffusion, opencv, vcicn"),
     (make_inpainter, "diffusion:/nonexistent/pipe", FileNotFoundError, "directory not found"),
     (make_encoder, "dino:/x", ValueError, "known: colortexture, openclip, transformers"),
     (make_encoder, "openclip:/nonexistent/clip.pt", FileNotFoundError, "file not found"),

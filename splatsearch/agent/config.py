@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from splatsearch.search.local_map import LocalMapConfig
 from splatsearch.search.matching import DEFAULT_TAU_M, RENDER_TAU_M
 
-from .variants import VARIANTS
+from .variants import VARIANTS, canonical_variant
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,10 @@ class Strategy:
             image (``no_nvsm``'s only evidence; the full system and ``no_inpaint`` add it to the
             rendered views when ``AgentConfig.match_observations``).
         observation_match_is_nvsm: count those crop matches as the entry's NVSM runs (``no_nvsm``).
-        inpaint: complete the holes of rendered views before matching (off for ``no_inpaint``).
+        inpaint: complete the holes of rendered views before matching (off for ``no_vcicn``).
+        inpainter: the plug-in spec of the completion step (:func:`splatsearch.plugins.make_inpainter`):
+            ``AgentConfig.inpainter`` resolved ("auto": "vcicn" when the package ships VCICN
+            weights, else "opencv"), "opencv" for ``opencv_inpaint``; None without completion.
         colour_cue: compare each detection's colours with the goal object's
             (``AgentConfig.colour_cue``).
     """
@@ -42,6 +45,7 @@ class Strategy:
     observation_match_is_nvsm: bool
     inpaint: bool
     colour_cue: bool
+    inpainter: str | None = None
 
 
 @dataclass
@@ -63,7 +67,7 @@ class AgentConfig:
     which a rendered pixel is a hole): the NVSM hemisphere. ``clear_views``: keep only hemisphere
     cameras over known free space with a line of sight to the object on the occupancy grid.
     ``nvsm_max_runs``: NVSM runs per object at most. ``match_observations``: the full system and
-    ``no_inpaint`` also match the real crop around each new detection. ``identify_every_frame``:
+    ``no_vcicn`` also match the real crop around each new detection. ``identify_every_frame``:
     detect and lift in every frame, not only in mapped ones (the masked depth places detections
     between mapped frames).
 
@@ -84,7 +88,9 @@ class AgentConfig:
     Plug-ins, as :mod:`splatsearch.plugins` spec strings (picklable, so evaluation workers build
     their own): ``detector`` is the goal-class detector ("sim" is the simulator's ground-truth
     masks, an oracle; "yolo:PATH[,sam=PATH]" a local YOLO model); ``matcher`` scores camera crops
-    and, built for renders, the NVSM views ("sift", or "loftr:PATH"). Objects passed to
+    and, built for renders, the NVSM views ("sift", or "loftr:PATH"); ``inpainter`` completes the
+    NVSM views ("auto": the shipped VCICN, or OpenCV when no weights are shipped; "vcicn",
+    "vcicn:PATH", "opencv"; ``opencv_inpaint`` always uses "opencv"). Objects passed to
     :class:`SplatSearchAgent` take precedence.
     """
 
@@ -121,10 +127,10 @@ class AgentConfig:
     seed: int = 0
     detector: str = "sim"
     matcher: str = "sift"
+    inpainter: str = "auto"
 
     def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        self.variant = canonical_variant(self.variant)
         if not (self.tau_m > 0 and self.nvsm_tau_m > 0):
             raise ValueError(f"need tau_m > 0 and nvsm_tau_m > 0, got {self.tau_m}, {self.nvsm_tau_m}")
         if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
@@ -137,15 +143,24 @@ class AgentConfig:
 
 def resolve_variant(cfg: AgentConfig) -> Strategy:
     """The :class:`Strategy` of ``cfg.variant`` (with ``cfg``'s own switches folded in)."""
-    v = cfg.variant
-    if v not in VARIANTS:
-        raise ValueError(f"variant must be one of {VARIANTS}, got {v!r}")
+    v = canonical_variant(cfg.variant)
+    inpaint = v != "no_vcicn"
+    if not inpaint:
+        inpainter = None
+    elif v == "opencv_inpaint":
+        inpainter = "opencv"
+    else:
+        from splatsearch.plugins import resolve_inpainter_spec
+
+        inpainter = resolve_inpainter_spec(cfg.inpainter)
     return Strategy(
         frontier_terms=v not in ("nearest_frontier", "gaussnav"),
         nvsm_during_search=v not in ("no_nvsm", "gaussnav"),
         identify_after_exploring=v == "gaussnav",
-        match_observations=v == "no_nvsm" or (cfg.match_observations and v in ("splatsearch", "no_inpaint")),
+        match_observations=v == "no_nvsm" or (cfg.match_observations
+                                              and v in ("splatsearch", "no_vcicn", "opencv_inpaint")),
         observation_match_is_nvsm=v == "no_nvsm",
-        inpaint=v != "no_inpaint",
+        inpaint=inpaint,
         colour_cue=bool(cfg.colour_cue),
+        inpainter=inpainter,
     )

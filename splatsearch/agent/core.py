@@ -30,7 +30,7 @@ from splatsearch.nav.exploration import ExplorationConfig, ExplorationPlanner
 from splatsearch.nav.grid import GridSpec
 from splatsearch.search.appearance import AppearanceModel, ColorHistogramAppearance
 from splatsearch.search.detection import Detector
-from splatsearch.search.inpainting import Inpainter, OpenCVInpainter
+from splatsearch.search.inpainting import Inpainter
 from splatsearch.search.matching import Matcher
 
 from .config import AgentConfig, resolve_variant
@@ -102,7 +102,7 @@ class SplatSearchAgent:
         self.W, self.H = int(width), int(height)
         self.goal = _check_goal_image(goal_rgb)
         self.goal_class = goal_class
-        from splatsearch.plugins import make_detector, make_matcher
+        from splatsearch.plugins import make_detector, make_inpainter, make_matcher
 
         encoder = encoder or ColorTextureEncoder()
         if nvsm_matcher is None:  # an explicit matcher also scores the renders, as before
@@ -115,7 +115,7 @@ class SplatSearchAgent:
                                      colour_cue=strategy.colour_cue, goal_mask=goal_mask, goal_frame=goal_frame)
         self.verifier = Verifier(self.goal, self.K, self.W, self.H, cfg, strategy, matcher=matcher,
                                  nvsm_matcher=nvsm_matcher,
-                                 inpainter=inpainter or OpenCVInpainter(),
+                                 inpainter=inpainter or make_inpainter(strategy.inpainter or "opencv"),
                                  colour_cue=self.perception.goal_signature is not None)
         terms = strategy.frontier_terms
         ecfg = ExplorationConfig(alpha=cfg.alpha, beta=cfg.beta if terms else 0.0, delta=cfg.delta if terms else 0.0,

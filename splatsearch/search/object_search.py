@@ -107,12 +107,20 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
         box = crop_box_for(bbox[0], bbox[1], cfg.crop_margin, cfg.floor_z)
     rgb, alpha = render_novel_views(gmap, vms, K, width, height, crop_box=box)
     holes = holes_from_alpha(alpha, cfg.alpha_tau)
-    if box is not None:
+    # a learned multi-view completion (VCICN) was trained to fill every hole, background included,
+    # from the views' cameras; a single-view fill gets only the enclosed gaps
+    learned = cfg.inpaint and bool(getattr(inpainter, "completes_background", False))
+    if box is not None and not learned:
         # around a cropped object the holes are mostly background that was cut away; inpainting
         # it would smear the object outwards, so it gets a flat colour and only enclosed gaps are
         # completed
         holes, outside = split_holes(holes)
         rgb[outside] = cfg.crop_fill
-    images = inpainter.inpaint(rgb, holes) if cfg.inpaint else rgb
+    if not cfg.inpaint:
+        images = rgb
+    elif getattr(inpainter, "wants_cameras", False):
+        images = inpainter.inpaint(rgb, holes, viewmats=vms)
+    else:
+        images = inpainter.inpaint(rgb, holes)
     bv = best_view(goal, images, matcher)
     return NVSMResult(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes, rgb)
