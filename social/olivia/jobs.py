@@ -43,7 +43,7 @@ def data_job(scenario: str, seed: int, every: int, augment: int):
     """Samples of one expert episode (exactly :func:`build_dataset` on one scenario and seed)."""
     from .dataset import build_dataset
 
-    return build_dataset([scenario], [seed], every=every, augment=augment)
+    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=True)
 
 
 def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Sequence[int]], *, every: int,
@@ -109,11 +109,12 @@ def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, basel
     order :func:`~splatsearch.social.olivia.train.table_one` averages them."""
     from .planner import VARIANT_LABELS, run_olivia_episode
     from .train import episode_metrics, run_baseline
+    from ..convoi.runner import REFERENCE
     from ..convoi.scenarios import make_scenario
 
     planner = _planner(checkpoint, stamp)
     scn = make_scenario(scenario, seed)
-    ref = run_baseline(scn, "expert")
+    ref = run_baseline(scn, REFERENCE)
     out = {}
     for v in variants:
         out[VARIANT_LABELS[v]] = episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref)

@@ -160,7 +160,9 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     reached = False
     traj_world = None
     plan_s, n_plans = 0.0, 0
-    expert_world = make_world(scn, "expert") if buffer is not None else None
+    from ..convoi.runner import REFERENCE
+
+    expert_world = make_world(scn, "expert") if buffer is not None and REFERENCE == "expert" else None
     for t in range(n):
         if t % cfg.replan_every == 0 or traj_world is None:
             tp = max(len(poses) - 1 - PREV_STEPS, 0)

@@ -53,6 +53,8 @@ from .planner import (
 from .captions import LONG_LEN, SHORT_LEN, TemplateCaptioner, with_action
 from .dataset import Samples, build_dataset
 from .features import action_of
+from ..convoi.runner import REFERENCE
+from ..convoi.scenario_names import DOOR_TRAIN_SEEDS, LLU_ADAPT_SEEDS, LLU_TEST_SEEDS
 from ..convoi.scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS, make_scenario
 from .tokenizer import DEFAULT_TOKENIZER
 
@@ -264,6 +266,17 @@ def val_batches(arrays: dict, max_rows: int) -> list[dict]:
 
 # -- the pipeline ---------------------------------------------------------------------------------
 
+def assert_held_out(s: Samples, scenario: str, seeds: Sequence[int]) -> None:
+    """Raise ValueError when any sample of ``s`` comes from ``scenario`` with one of ``seeds``
+    (the held-out doorway's adaptation and test seeds must never be trained on)."""
+    from ..convoi.scenario_names import SCENARIOS
+
+    bad = (np.asarray(s.scenario) == SCENARIOS.index(scenario)) & np.isin(np.asarray(s.seed), np.asarray(seeds))
+    if bad.any():
+        raise ValueError(f"{int(bad.sum())} training samples come from held-out {scenario} seeds "
+                         f"{sorted(set(np.asarray(s.seed)[bad].tolist()))}")
+
+
 @dataclass
 class TrainConfig:
     """Data: scenarios, train / validation seeds, sampling stride (steps) and augmented copies.
@@ -290,6 +303,8 @@ class TrainConfig:
     patience: int = 5
     db_size: int = 1000
     seed: int = 0
+    door_seeds: tuple = DOOR_TRAIN_SEEDS
+    vary_geometry: bool = True
 
 
 def _text_arrays(s: Samples):
@@ -397,7 +412,7 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
         train, val = Samples.load(data_path), Samples.load(val_path)
         log(f"data: reused {len(train)} train / {len(val)} val samples from {out_dir}")
     else:
-        n_jobs = len(tc.scenarios) * (len(tc.train_seeds) + len(tc.val_seeds))
+        n_jobs = len(tc.scenarios) * (len(tc.train_seeds) + len(tc.val_seeds)) + len(tc.door_seeds)
         tid = task("expert episodes + renders", n_jobs)
         done = [0]
 
@@ -405,10 +420,15 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
             done[0] += 1
             advance(tid, completed=done[0], description=f"expert {label}")
 
-        train = build_dataset(tc.scenarios, tc.train_seeds, every=tc.every, augment=tc.augment, progress=prog)
-        val = build_dataset(tc.scenarios, tc.val_seeds, every=tc.every, augment=tc.augment, progress=prog)
+        kw = dict(every=tc.every, augment=tc.augment, progress=prog, vary_geometry=tc.vary_geometry)
+        train = build_dataset(tc.scenarios, tc.train_seeds, **kw)
+        if tc.door_seeds:
+            # doors of sampled widths (1.02-1.6 m, the held-out doorway's 1.1 m inside), never its seeds
+            train = Samples.concat([train, build_dataset(("doorway",), tc.door_seeds, **kw)])
+        val = build_dataset(tc.scenarios, tc.val_seeds, **kw)
         train.save(data_path)
         val.save(val_path)
+    assert_held_out(train, "doorway", LLU_ADAPT_SEEDS + tuple(LLU_TEST_SEEDS))
     summary["data"] = {"train": len(train), "val": len(val), "seconds": time.perf_counter() - t0,
                        "actions": np.bincount(train.action, minlength=6).tolist()}
     log(f"data: {len(train)} train / {len(val)} val samples in {summary['data']['seconds']:.0f} s")
@@ -556,7 +576,7 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
         per: dict[str, list] = {}
         for seed in seeds:
             scn = make_scenario(name, seed)
-            ref = run_baseline(scn, "expert")
+            ref = run_baseline(scn, REFERENCE)
             for v in variants:
                 per.setdefault(VARIANT_LABELS[v], []).append(episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref))
             for b in baselines:
@@ -602,7 +622,7 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
         out = {}
         for seed in test_seeds:
             scn = make_scenario(scenario, seed)
-            ref = run_baseline(scn, "expert")
+            ref = run_baseline(scn, REFERENCE)
             for v in VARIANTS:
                 out.setdefault(v, []).append(episode_metrics(run_olivia_episode(scn, p.with_variant(v)), ref))
             if progress is not None:
