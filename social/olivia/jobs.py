@@ -135,7 +135,7 @@ def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequenc
     from splatsearch.io import atomic_write_bytes
     from splatsearch.parallel import Job
 
-    from .train import _mean
+    from .train import _mean, win_counts
 
     checkpoint = os.path.abspath(checkpoint)
     st = os.stat(checkpoint)
@@ -167,7 +167,9 @@ def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequenc
         for seed in seeds:
             for method, m in done[f"{name}/{seed}"].items():
                 per.setdefault(method, []).append(m)
+        wins = win_counts(per)
         for method, ms in per.items():
-            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms))
+            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms)
+                        | ({"wins": wins[method]} if method in wins else {}))
         log(f"Table I: {name} done")
     return rows
