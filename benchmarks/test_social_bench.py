@@ -97,3 +97,20 @@ def test_frechet(benchmark):
     metrics.frechet(a, b)
     benchmark(lambda: metrics.frechet(a, b))
     _rate(benchmark, "per_s")
+
+
+def test_human_walker_step(benchmark, scene):
+    """One step of the human-like reference walker (plan over the route against the forked
+    people's 4-s future, move, step the people)."""
+    from splatsearch.social.convoi.human import HumanWalkerConfig, WalkerCarry, make_walker_world, walker_step
+
+    scn, _ = scene
+    world = make_walker_world(scn)
+    cfg = HumanWalkerConfig()
+    sf = pedsim.SocialForceConfig()
+    carry = WalkerCarry(jnp.asarray(scn.start, jnp.float32), jnp.zeros(2, jnp.float32), scn.peds,
+                        jnp.asarray(0, jnp.int32), jnp.asarray(0.0, jnp.float32))
+    key = jax.random.PRNGKey(0)
+    jax.block_until_ready(walker_step(carry, world, key, cfg, sf)[0].pose)
+    benchmark(lambda: jax.block_until_ready(walker_step(carry, world, key, cfg, sf)[0].pose))
+    _rate(benchmark, "steps_per_s")

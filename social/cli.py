@@ -41,7 +41,8 @@ def register(subparsers, extra=()) -> argparse.ArgumentParser:
     and add their own sub-commands, e.g. ``social train`` / ``social eval``.
     """
     p = subparsers.add_parser("social", help="social navigation: DWA vs CoNVOI + DWA on simulated crowds",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                              allow_abbrev=False)  # else `social train --seed` is read as an abbreviation of --seeds
     _add_run_args(p)
     p.set_defaults(func=run_command)
     sub = p.add_subparsers(dest="social_command", required=False)

@@ -215,13 +215,71 @@ def test_expert_action_is_judged_from_the_state_not_the_robot(hallway):
     assert poses.shape[1] == 3 and 2 <= len(poses) <= 9
     np.testing.assert_allclose(poses[0], start)
     assert poses[-1, 0] > start[0]  # it heads down the hallway toward the goal
-    assert captions.ACTIONS[features.expert_action(hallway, start, zero, hallway.peds, 0)] == "straight"
-    # the same place faced the wrong way: the expert turns round, whatever a planner would do
+    assert captions.ACTIONS[features.expert_action(hallway, start, zero, hallway.peds, 0, reference="expert")] == "straight"
+    # the human-like reference (the default) moves into the right-hand lane of the hallway first
+    assert captions.ACTIONS[features.expert_action(hallway, start, zero, hallway.peds, 0)] == "keep_right"
+    # the same place faced the wrong way: the reference turns round, whatever a planner would do
     back = start + np.array([0.0, 0.0, np.pi], np.float32)
-    assert captions.ACTIONS[features.expert_action(hallway, back, zero, hallway.peds, 0)] in ("turn_left", "turn_right", "yield")
+    for ref in ("expert", "human"):
+        assert captions.ACTIONS[features.expert_action(hallway, back, zero, hallway.peds, 0, reference=ref)] in (
+            "turn_left", "turn_right", "yield")
     with pytest.raises(ValueError):
         expert_rollout(hallway, start, zero, hallway.peds, 0, 0)
     with pytest.raises(ValueError, match="pose must be"):
         expert_rollout(hallway, start[:2], zero, hallway.peds, 0, 8)
     with pytest.raises(ValueError, match="t_index"):
         expert_rollout(hallway, start, zero, hallway.peds, -1, 8)
+
+
+def test_training_scenes_sample_door_widths_and_never_the_held_out_doorway_seeds():
+    from splatsearch.social.convoi.scenario_names import DOOR_TRAIN_SEEDS, LLU_ADAPT_SEEDS, LLU_TEST_SEEDS
+    from splatsearch.social.convoi.scenarios import GEOMETRY, make_scenario, training_geometry
+    from splatsearch.social.olivia.dataset import Samples
+    from splatsearch.social.olivia.train import TrainConfig, assert_held_out
+
+    tc = TrainConfig()
+    assert tc.vary_geometry and tuple(tc.door_seeds) == DOOR_TRAIN_SEEDS
+    held = set(LLU_ADAPT_SEEDS) | set(LLU_TEST_SEEDS)
+    assert not held & set(tc.door_seeds) and not held & set(tc.train_seeds) and not held & set(tc.val_seeds)
+    default, lo, hi = GEOMETRY["doorway"]["door_width"]
+    widths = np.array([training_geometry("doorway", s)["door_width"] for s in range(200, 300)])
+    assert widths.min() >= lo and widths.max() <= hi
+    # across the range, the held-out door (default width) inside it
+    assert widths.min() < default < widths.max() and np.ptp(widths) > 0.8 * (hi - lo)
+    dw = [training_geometry("doorway", s)["door_width"] for s in tc.door_seeds]
+    assert min(dw) < default + 0.1 and max(dw) > default + 0.25
+    # the width is the scene's: the gap between the two door walls' ends
+    scn = make_scenario("doorway", 200, door_width=1.4)
+    caps = scn.capsules[-2:]
+    assert caps[1, 1] - caps[0, 3] == pytest.approx(1.4, abs=1e-5)
+    with pytest.raises(ValueError):
+        make_scenario("doorway", 0, width=2.0)
+    # the dataset check: a training set holding a held-out doorway seed is refused
+    from splatsearch.social.convoi.scenarios import SCENARIOS
+
+    def fake(scenario, seed):
+        n = 2
+        return Samples(np.zeros((n, 2, 2, 3), np.uint8), np.zeros((n, 3, 4), np.float32), np.ones((n, 3), bool),
+                       np.zeros((n, 9), np.float32), np.zeros((n, 10, 3), np.float32), np.zeros(n, np.int32),
+                       ["a"] * n, ["b"] * n, np.full(n, SCENARIOS.index(scenario), np.int32), np.full(n, seed, np.int32),
+                       np.arange(n, dtype=np.int32))
+
+    ok = Samples.concat([fake("hallway", 1000), fake("doorway", 200)])  # hallway 1000 is not the doorway's
+    assert_held_out(ok, "doorway", sorted(held))
+    with pytest.raises(ValueError, match="held-out"):
+        assert_held_out(Samples.concat([ok, fake("doorway", 1003)]), "doorway", sorted(held))
+
+
+def test_free_space_sees_the_passage_width():
+    from splatsearch.social.convoi.scenarios import make_scenario
+
+    narrow = make_scenario("hallway", 0, width=2.0)
+    wide = make_scenario("hallway", 0, width=3.0)
+    pose = np.array([3.0, 0.0, 0.0])
+    fn, fw = features.free_space(narrow.field(), pose), features.free_space(wide.field(), pose)
+    # left / right: (half width - robot radius) / range, within a ray step
+    assert fn[0] == pytest.approx((1.0 - 0.05 - 0.25) / features.FREE_RANGE, abs=0.05)
+    assert fw[0] == pytest.approx((1.5 - 0.05 - 0.25) / features.FREE_RANGE, abs=0.05)
+    assert fn[1] < fw[1]
+    g = features.goal_features(narrow.global_path(), narrow.goal, pose, narrow.field())
+    assert g.shape == (features.GOAL_DIM,) and np.allclose(g[5:], fn)

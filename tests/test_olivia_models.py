@@ -157,6 +157,10 @@ def test_tpn_shapes(tpn_setup):
     # the full-size configuration follows the thesis: C = 128, 32 heads, K = 5, 10 poses
     c = tpn.TPNConfig()
     assert (c.C, c.heads, c.K, c.horizon, len(c.channels)) == (128, 32, 5, 10, 5)
+    # float32 parameters and outputs also under x64 (conftest): a float64 plan made the TSM's GRU
+    # scan carry change dtype in closed loop
+    assert {str(x.dtype) for x in jax.tree_util.tree_leaves(params)} == {"float32"}
+    assert out.dtype == jnp.float32
 
 
 def test_tpn_modality_masks(tpn_setup):

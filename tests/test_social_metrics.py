@@ -145,3 +145,27 @@ def test_pad_rows_pads_masks_and_guards_capacity():
         pad_rows(np.zeros((5, 2)), 4, what="group pairs")
     out, valid = pad_rows(np.arange(10).reshape(5, 2), 4, truncate=True)
     assert valid.all() and out[-1].tolist() == [6, 7]
+
+
+def test_social_metrics_seanav_style():
+    from splatsearch.social.convoi.metrics import path_irregularity, social_metrics, time_not_moving
+
+    T = 21
+    x = np.linspace(0, 4, T)
+    straight = np.stack([x, 0 * x, 0 * x], -1)
+    assert path_irregularity(straight) == pytest.approx(0.0)
+    weave = straight.copy()
+    weave[:, 2] = 0.3 * np.sin(np.arange(T))
+    assert path_irregularity(weave) > 0.5  # about 0.87 rad/m of pointless turning
+    turn = straight.copy()
+    turn[:, 2] = np.linspace(0, np.pi / 2, T)  # one monotone turn: nothing beyond what it needs
+    assert path_irregularity(turn) == pytest.approx(0.0, abs=1e-9)
+    still = np.concatenate([straight[:5], np.repeat(straight[5:6], 10, 0), straight[5:]])
+    assert time_not_moving(still[:, :2], 0.1) == pytest.approx(1.0)  # 11 equal poses: 10 steps still
+    # one person standing 1.0 m beside the path (edge gap 0.5 m): personal zone, never intimate
+    people = np.broadcast_to(np.array([[[2.0, 1.0]]]), (T, 1, 2))
+    m = social_metrics(straight, people, np.array([True]), 0.1, True)
+    assert m["completed"] == 1.0 and m["intimate_s"] == 0.0
+    assert m["min_dist"] == pytest.approx(0.5, abs=1e-5)
+    gaps = np.hypot(x - 2.0, 1.0) - 0.5
+    assert m["personal_s"] == pytest.approx(0.1 * np.sum(gaps < 1.2))

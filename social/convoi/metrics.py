@@ -306,3 +306,50 @@ def fraction_unacceptable(flags) -> float:
     """Share (in [0, 1]) of unacceptable reference paths; 0 for an empty list."""
     f = np.asarray(flags, bool).reshape(-1)
     return float(jnp.mean(jnp.asarray(f, F32))) if f.size else 0.0
+
+
+# -- SEANavBench-style social metrics (Tsoi et al., SEAN 2.0) ---------------------------------
+
+#: Hall's proxemic zones (m, edge to edge between the robot's and a person's discs)
+INTIMATE_ZONE = 0.45
+PERSONAL_ZONE = 1.2
+
+
+def path_irregularity(robot) -> float:
+    """Rotation beyond what facing the goal needs, per metre (rad/m): (Σ|Δyaw| - |yaw_end -
+    yaw_start|) / path length, over ``robot`` poses (T, 3) (yaw unwrapped). 0 for a straight or
+    single-turn path; larger for weaving."""
+    r = np.asarray(robot, np.float64)
+    if r.ndim != 2 or r.shape[1] < 3:
+        raise ValueError(f"robot must be (T, 3) poses, got {r.shape}")
+    if len(r) < 2:
+        return 0.0
+    yaw = np.unwrap(r[:, 2])
+    total = float(np.sum(np.abs(np.diff(yaw))))
+    need = abs(float(yaw[-1] - yaw[0]))
+    length = float(np.sum(np.linalg.norm(np.diff(r[:, :2], axis=0), axis=1)))
+    return max(total - need, 0.0) / max(length, 1e-6)
+
+
+def time_not_moving(robot, dt: float, speed: float = 0.05) -> float:
+    """Seconds the robot moved slower than ``speed`` m/s (SEANavBench's "time not moving")."""
+    r = _xy(robot, "robot")
+    if len(r) < 2:
+        return 0.0
+    v = np.linalg.norm(np.diff(r, axis=0), axis=1) / float(dt)
+    return float(np.sum(v < speed) * float(dt))
+
+
+def social_metrics(robot, people, active, dt: float, reached: bool, robot_radius: float = 0.25,
+                   person_radius: float = 0.25) -> dict:
+    """SEANavBench-style metrics of one episode: ``completed`` (goal reached, 0/1),
+    ``irregularity`` (rad/m, :func:`path_irregularity`), ``not_moving_s`` (s), ``personal_s`` and
+    ``intimate_s`` (s within Hall's personal 1.2 m / intimate 0.45 m zones, edge to edge),
+    ``min_dist`` (m, edge to edge; inf with nobody). robot: (T, 3) poses; people: (T, P, 2);
+    active: (P,) bool."""
+    robot = np.asarray(robot)
+    zones = psv_duration(robot[:, :2], people, dt, (PERSONAL_ZONE, INTIMATE_ZONE), active, robot_radius, person_radius)
+    return {"completed": float(bool(reached)), "irregularity": path_irregularity(robot),
+            "not_moving_s": time_not_moving(robot[:, :2], dt), "personal_s": float(zones[0]),
+            "intimate_s": float(zones[1]),
+            "min_dist": min_distance_to_people(robot[:, :2], people, active, robot_radius, person_radius)}

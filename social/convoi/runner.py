@@ -6,7 +6,10 @@ Planners (:data:`PLANNERS`):
   global path; it sees the people in its line of sight and extrapolates them at constant velocity.
 * ``convoi``: the same DWA plus CoNVOI's reference-path critic (eq 5, 6), the reference path coming
   from :class:`splatsearch.social.convoi.CoNVOI` (context, marked image, VLM, extrapolation, re-query).
-* ``expert``: the scenario's "teleoperation" reference: a privileged, socially compliant DWA that
+* ``human``: the human-like reference walker (:mod:`.human`): plans over the whole route with the
+  people's privileged future, walker's preferences (lanes, personal space, passing side, groups,
+  corners, doors); the reference of OLiVia-Nav's tables.
+* ``expert``: the DWA-with-critics "teleoperation" reference (the alternative): a privileged, socially compliant DWA that
   knows every pedestrian's future (it forks the simulator every step), keeps out of personal
   space (1 m), never cuts between group members, and keeps right on a lane-shifted global path
   where the scenario asks for it.
@@ -47,7 +50,10 @@ from .scenarios import (
     smooth_polyline,
 )
 
-PLANNERS = ("dwa", "convoi", "expert")
+PLANNERS = ("dwa", "convoi", "expert", "human")
+#: the reference of OLiVia-Nav's Tables I-II and of its training data (:mod:`.human`); "expert" is the
+#: DWA-with-critics alternative
+REFERENCE = "human"
 MAX_PATH = 256
 MAX_REF = 16
 MAX_GROUP_PAIRS = 16
@@ -245,6 +251,10 @@ def run_episode(scn: Scenario, kind: str, *, convoi=None, observer=None, max_ste
     """
     if kind not in PLANNERS:
         raise ValueError(f"unknown planner {kind!r}; choose from {PLANNERS}")
+    if kind == "human":
+        from .human import run_walker
+
+        return run_walker(scn, max_steps=max_steps, sf=sf)
     if kind == "convoi" and convoi is None:
         raise ValueError("kind='convoi' needs a CoNVOI instance (splatsearch.social.convoi.CoNVOI)")
     cfg = planner_config(kind)
@@ -344,5 +354,5 @@ def people_gaps(res: EpisodeResult) -> np.ndarray:
     return d.min(1) if d.shape[1] else np.full(len(d), np.inf)
 
 
-__all__ = ["PLANNERS", "Carry", "EpisodeResult", "StepOut", "World", "carrot", "control_step", "expert_rollout", "lane_path",
+__all__ = ["PLANNERS", "REFERENCE", "Carry", "EpisodeResult", "StepOut", "World", "carrot", "control_step", "expert_rollout", "lane_path",
            "make_world", "min_wall_clearance", "people_gaps", "planner_config", "run_episode"]

@@ -162,15 +162,45 @@ def _formation(centre, radius, n, phase):
     return np.asarray(centre)[None] + radius * np.stack([np.cos(a), np.sin(a)], -1)
 
 
-def make_scenario(name: str, seed: int = 0) -> Scenario:
-    """The scenario ``name`` (one of :data:`SCENARIOS`) jittered by ``seed`` (int >= 0)."""
+#: geometry a scenario accepts (m) with its default and the range training scenes draw it from
+GEOMETRY = {
+    "hallway": {"width": (2.6, 1.9, 3.2)},
+    "blind_corner": {"width": (2.4, 2.1, 2.8)},
+    "static_groups": {"spread": (1.0, 0.8, 1.25)},
+    "dynamic_groups": {"spread": (0.75, 0.6, 0.95)},
+    "doorway": {"door_width": (1.1, 1.02, 1.6)},
+    "crossing": {},
+}
+
+
+def training_geometry(name: str, seed: int) -> dict:
+    """The geometry of training scene (``name``, ``seed``): each parameter of :data:`GEOMETRY`
+    drawn uniformly over its range (door widths 1.02-1.6 m, corridor widths, group spacing),
+    from a stream of its own so the scenario's other draws stay those of ``seed``."""
+    rng = np.random.default_rng([int(seed), 77, SCENARIOS.index(name)])
+    return {k: float(rng.uniform(lo, hi)) for k, (_, lo, hi) in GEOMETRY[name].items()}
+
+
+def make_scenario(name: str, seed: int = 0, **geometry) -> Scenario:
+    """The scenario ``name`` (one of :data:`SCENARIOS`) jittered by ``seed`` (int >= 0), with
+    optional ``geometry`` overrides (m; see :data:`GEOMETRY`, e.g. ``door_width=1.3``)."""
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)}")
     if int(seed) != seed or seed < 0:
         raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    bad = set(geometry) - set(GEOMETRY[name])
+    if bad:
+        raise ValueError(f"{name} has no geometry parameter(s) {sorted(bad)}; it takes {sorted(GEOMETRY[name])}")
+    geo = {k: float(geometry.get(k, d)) for k, (d, lo, hi) in GEOMETRY[name].items()}
+    for k, v in geo.items():
+        d, lo, hi = GEOMETRY[name][k]
+        if not (0.5 * lo <= v <= 2.0 * hi):
+            raise ValueError(f"{name}: {k}={v} m is outside the supported {0.5 * lo:.2f}-{2.0 * hi:.2f} m")
     rng = np.random.default_rng([int(seed), SCENARIOS.index(name)])
     j = lambda s: float(rng.uniform(-s, s))
-    return globals()[f"_{name}"](int(seed), rng, j)
+    scn = globals()[f"_{name}"](int(seed), rng, j, **geo)
+    scn._cache["geometry"] = geo
+    return scn
 
 
 def _scn(name, seed, caps, start, goal, pos, goals, v0, group=None, **kw) -> Scenario:
@@ -179,8 +209,9 @@ def _scn(name, seed, caps, start, goal, pos, goals, v0, group=None, **kw) -> Sce
                     peds, **kw)
 
 
-def _hallway(seed, rng, j):
-    caps = [_wall(-1.5, -1.3, 13.0, -1.3), _wall(-1.5, 1.3, 13.0, 1.3), _wall(13.0, -1.3, 13.0, 1.3)]
+def _hallway(seed, rng, j, width=2.6):
+    h = width / 2
+    caps = [_wall(-1.5, -h, 13.0, -h), _wall(-1.5, h, 13.0, h), _wall(13.0, -h, 13.0, h)]
     y1, y2 = 0.35 + j(0.15), -0.15 + j(0.15)
     pos = [[8.5 + j(0.5), y1], [10.0 + j(0.5), y2]]
     # walking toward -x, their right is +y: they drift to the +y side of the hallway
@@ -191,9 +222,10 @@ def _hallway(seed, rng, j):
                 description="narrow hallway, two people approaching front-on")
 
 
-def _blind_corner(seed, rng, j):
-    caps = [_wall(-1.5, -1.2, 8.0, -1.2), _wall(8.0, -1.2, 8.0, 7.5), _wall(-1.5, 1.2, 5.6, 1.2),
-            _wall(5.6, 1.2, 5.6, 7.5)]
+def _blind_corner(seed, rng, j, width=2.4):
+    h = width / 2
+    caps = [_wall(-1.5, -h, 8.0, -h), _wall(8.0, -h, 8.0, 7.5), _wall(-1.5, h, 8.0 - width, h),
+            _wall(8.0 - width, h, 8.0 - width, 7.5)]
     # the person comes down the vertical arm and cuts the inner corner, out of sight until late
     pos = [[6.5 + j(0.2), 7.0 + j(0.3)]]
     goals = [[[6.1 + j(0.1), 0.5 + j(0.1)], [-1.8, 0.3 + j(0.1)]]]
@@ -203,10 +235,10 @@ def _blind_corner(seed, rng, j):
                 description="L-shaped corridor, a person comes round the corner")
 
 
-def _static_groups(seed, rng, j):
+def _static_groups(seed, rng, j, spread=1.0):
     caps = _box(-1.5, -5.0, 13.5, 5.0)
-    ga = _formation([4.0 + j(0.3), 0.15 + j(0.2)], 0.75, 3, j(0.5))
-    gb = _formation([8.2 + j(0.3), -0.9 + j(0.2)], 0.7, 3, 0.5 + j(0.5))
+    ga = _formation([4.0 + j(0.3), 0.15 + j(0.2)], 0.75 * spread, 3, j(0.5))
+    gb = _formation([8.2 + j(0.3), -0.9 + j(0.2)], 0.7 * spread, 3, 0.5 + j(0.5))
     walkers = [[10.0 + j(0.5), 4.2], [12.0 + j(0.5), -3.5 + j(0.3)], [6.0 + j(0.5), -4.4]]
     wgoals = [[[2.0 + j(0.5), -4.2]], [[0.5, 2.5 + j(0.5)]], [[7.5 + j(0.5), 4.4]]]
     pos = np.vstack([ga, gb, walkers])
@@ -218,13 +250,13 @@ def _static_groups(seed, rng, j):
                 description="two static groups and three walking people")
 
 
-def _dynamic_groups(seed, rng, j):
+def _dynamic_groups(seed, rng, j, spread=0.75):
     caps = _box(-1.5, -5.0, 13.5, 5.0)
     # a group of three walking abreast head-on (met around x = 4 m after ~6 s), a pair crossing
     # where the robot arrives ~10 s in, and two individuals
     y0 = 0.2 + j(0.3)
     x1 = 9.5 + j(0.3)
-    g1 = [[x1, y0 - 0.75], [x1 + j(0.15), y0], [x1 + j(0.15), y0 + 0.75]]
+    g1 = [[x1, y0 - spread], [x1 + j(0.15), y0], [x1 + j(0.15), y0 + spread]]
     g1_goals = [[[-1.0, p[1] + 0.2]] for p in g1]
     x2 = 6.2 + j(0.4)
     g2 = [[x2 - 0.4, -4.4], [x2 + 0.4, -4.4]]
@@ -241,9 +273,10 @@ def _dynamic_groups(seed, rng, j):
                 description="two walking groups and two walking people")
 
 
-def _doorway(seed, rng, j):
+def _doorway(seed, rng, j, door_width=1.1):
     dy = j(0.1)
-    caps = _box(-1.5, -4.0, 12.5, 4.0) + [_wall(5.0, -4.0, 5.0, dy - 0.55), _wall(5.0, dy + 0.55, 5.0, 4.0)]
+    h = door_width / 2  # wall ends (the clear width is door_width - 2 WALL)
+    caps = _box(-1.5, -4.0, 12.5, 4.0) + [_wall(5.0, -4.0, 5.0, dy - h), _wall(5.0, dy + h, 5.0, 4.0)]
     pos = [[8.5 + j(0.4), 1.5 + j(0.3)]]
     goals = [[[5.6, dy + 0.1], [4.2, dy - 0.1], [0.5 + j(0.3), -2.5 + j(0.3)]]]
     v0 = [1.0 + j(0.15)]
@@ -251,7 +284,7 @@ def _doorway(seed, rng, j):
                 context="a doorway", max_steps=400, description="a person comes through a 1.1 m doorway")
 
 
-def _crossing(seed, rng, j):
+def _crossing(seed, rng, j):  # noqa: ARG001
     caps = _box(-1.5, -6.0, 13.5, 6.0)
     pos = [[4.0 + j(0.4), 4.5 + j(0.3)], [6.5 + j(0.4), -5.0 + j(0.3)], [8.5 + j(0.4), 5.3 + j(0.3)],
            [3.0 + j(0.4), -5.5 + j(0.3)]]

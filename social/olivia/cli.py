@@ -49,7 +49,7 @@ def register_olivia(social_subparsers) -> None:
     """Add the ``data``, ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
     from splatsearch.parallel import add_executor_args
 
-    from ..convoi.scenario_names import TABLE_ONE_SEEDS, THESIS_SCENARIOS
+    from ..convoi.scenario_names import LLU_ADAPT_SEEDS, LLU_TEST_SEEDS, TABLE_ONE_SEEDS, THESIS_SCENARIOS
 
     d = social_subparsers.add_parser("data", help="expert episodes + renders -> OUT/samples_{train,val}.npz, in "
                                                   "parallel (then `social train --out OUT` uses them)")
@@ -92,10 +92,11 @@ def register_olivia(social_subparsers) -> None:
     e.add_argument("--ablations", action="store_true", help="also the ablations in Table I")
     e.add_argument("--llu-scenario", type=_scenarios, default=("doorway",),
                    help="held-out scenario for Table II (default: doorway)")
-    e.add_argument("--llu-adapt-seeds", type=_ints, default=(500, 501, 502, 503),
-                   help="seeds driven in order until the buffer holds --llu-size images (default: 500-503)")
-    e.add_argument("--llu-test-seeds", type=_ints, default=(1000, 1001, 1002),
-                   help="seeds Table II is measured on (default: 1000-1002)")
+    e.add_argument("--llu-adapt-seeds", type=_ints, default=LLU_ADAPT_SEEDS,
+                   help=f"seeds driven in order until the buffer holds --llu-size images "
+                        f"(default: {LLU_ADAPT_SEEDS[0]}-{LLU_ADAPT_SEEDS[-1]})")
+    e.add_argument("--llu-test-seeds", type=_ints, default=LLU_TEST_SEEDS,
+                   help=f"seeds Table II is measured on (default: {LLU_TEST_SEEDS[0]}-{LLU_TEST_SEEDS[-1]})")
     e.add_argument("--llu-size", type=int, default=50, help="LLU buffer size |B| in images")
     e.add_argument("--llu-mu", type=float, default=0.05, help="eq 4 temperature")
     e.add_argument("--no-table2", action="store_true", help="skip Table II (the LLU update)")
@@ -194,8 +195,16 @@ def cmd_eval(args) -> int:
                                        log=console.log, progress=prog)
             result["table2"] = rows2
             result["llu"] = info
+            ef = info["effect"]
             md += (f"\n\n## Table II ({args.llu_scenario[0]}, held out of training; |B| = {info['buffer']} from "
-                   f"adaptation seeds {', '.join(map(str, info['adapt_seeds']))}, i_t = 1)\n\n" + format_table_two(rows2))
+                   f"adaptation seeds {', '.join(map(str, info['adapt_seeds']))}, i_t = 1)\n\n" + format_table_two(rows2)
+                   + f"\n\nLLU (eq 4): loss {info['llu_losses'][0]:.3f} -> {info['llu_losses'][-1]:.3f}; buffer captions' "
+                   f"actions {ef['caption_actions']}; |D_T| {info['db_before']} -> {info['db_after']}; on the "
+                   f"{ef['views']} buffer views the retrieved caption's action matches the new caption "
+                   f"{ef['retrieved_action_right_before']:.2f} -> {ef['retrieved_action_right_after']:.2f}, the TSM's "
+                   f"selected plan performs it {ef['plan_action_right_before']:.2f} -> "
+                   f"{ef['plan_action_right_after']:.2f}, selected index changed on "
+                   f"{ef['selected_index_changed']:.2f} of them.")
     result["seconds"] = time.perf_counter() - t0
     with open(os.path.join(out, "eval.json"), "w", encoding="utf-8") as f:
         json.dump(result, f, indent=1)

@@ -149,20 +149,26 @@ def samples_from_episode(scn, res, *, every: int = 4, augment: int = 1, rng: np.
 
 
 def build_dataset(scenarios: Sequence[str], seeds: Sequence[int], *, every: int = 4, augment: int = 1,
-                  progress=None, expert_cache: dict | None = None) -> Samples:
-    """Samples from the expert episodes of every (scenario, seed). ``progress(i, n, label)``
-    is called after each episode; ``expert_cache`` (dict) keeps the episodes for reuse."""
-    from ..convoi.runner import run_episode
-    from ..convoi.scenarios import make_scenario
+                  progress=None, expert_cache: dict | None = None, reference: str | None = None,
+                  vary_geometry: bool = False) -> Samples:
+    """Samples from the reference episodes of every (scenario, seed). ``progress(i, n, label)``
+    is called after each episode; ``expert_cache`` (dict) keeps the episodes for reuse;
+    ``reference``: the planner kind imitated (default :data:`~splatsearch.social.convoi.runner.REFERENCE`,
+    the human-like walker); ``vary_geometry``: each scene's door / corridor width is drawn from
+    the training ranges (:func:`~splatsearch.social.convoi.scenarios.training_geometry`)."""
+    from ..convoi.runner import REFERENCE, run_episode
+    from ..convoi.scenarios import make_scenario, training_geometry
+
+    reference = reference or REFERENCE
 
     parts = []
     jobs = [(s, int(k)) for s in scenarios for k in seeds]
     for i, (name, seed) in enumerate(jobs):
-        scn = make_scenario(name, seed)
-        key = (name, seed)
+        scn = make_scenario(name, seed, **(training_geometry(name, seed) if vary_geometry else {}))
+        key = (name, seed, reference, vary_geometry)
         res = expert_cache.get(key) if expert_cache is not None else None
         if res is None:
-            res = run_episode(scn, "expert")
+            res = run_episode(scn, reference)
             if expert_cache is not None:
                 expert_cache[key] = res
         parts.append(samples_from_episode(scn, res, every=every, augment=augment,

@@ -28,7 +28,8 @@ if TYPE_CHECKING:
 HORIZON = 10                    # future poses per trajectory (thesis 3.3)
 FUTURE_STRIDE = 4               # sim steps between future poses (0.4 s at dt = 0.1 s)
 GOAL_LOOKAHEAD = 3.0            # m along the global path: the TPN's goal G
-GOAL_DIM = 5
+GOAL_DIM = 9                    # goal (5) + local free space (4), see goal_features
+FREE_RANGE = 2.0                # m: how far the free-space rays look
 
 
 def path_carrot(path: np.ndarray, pos: np.ndarray, lookahead: float = GOAL_LOOKAHEAD) -> tuple[np.ndarray, float]:
@@ -45,15 +46,36 @@ def path_carrot(path: np.ndarray, pos: np.ndarray, lookahead: float = GOAL_LOOKA
     return np.array([x, y]), float(np.arctan2(d[1], d[0]))
 
 
-def goal_features(path: np.ndarray, goal: np.ndarray, pose: np.ndarray) -> np.ndarray:
+def free_space(field, pose: np.ndarray, max_range: float = FREE_RANGE) -> np.ndarray:
+    """(4,) local free space around the robot at ``pose`` (3,) world: how far (m / ``max_range``,
+    clipped to 1) its body can move left, right, ahead-left and ahead-right (rays at ±90° and
+    ±30°, 5 cm steps) before touching a static obstacle. It lets the TPN see how wide the passage
+    is (a 1 m door vs a 2.6 m hallway) instead of keeping a lane it learned elsewhere."""
+    from ..convoi.geometry import field_lookup
+    from ..convoi.scenarios import ROBOT_RADIUS
+
+    pose = np.asarray(pose, np.float64)
+    steps = np.arange(1, int(max_range / 0.05) + 1) * 0.05
+    ang = pose[2] + np.array([np.pi / 2, -np.pi / 2, np.pi / 6, -np.pi / 6])
+    pts = pose[None, None, :2] + steps[None, :, None] * np.stack([np.cos(ang), np.sin(ang)], -1)[:, None]
+    clr = np.asarray(field_lookup(field, jnp.asarray(pts, F32)))
+    blocked = clr < ROBOT_RADIUS
+    first = np.where(blocked.any(1), np.argmax(blocked, 1), len(steps))
+    return (np.r_[0.0, steps][first] / max_range).astype(np.float32)
+
+
+def goal_features(path: np.ndarray, goal: np.ndarray, pose: np.ndarray, field=None) -> np.ndarray:
     """(GOAL_DIM,) goal G in the robot frame: carrot x/3, y/3 (m), cos/sin of the path direction
-    there, and the distance to the final goal / 5 (clipped to 1)."""
+    there, the distance to the final goal / 5 (clipped to 1), then the local free space
+    (:func:`free_space`; ones without a ``field``)."""
     pose = np.asarray(pose, np.float64)
     c, heading = path_carrot(path, pose[:2])
     r = world_to_robot(c, pose)
     a = heading - pose[2]
     dg = min(float(np.linalg.norm(np.asarray(goal, np.float64) - pose[:2])), 5.0) / 5.0
-    return np.array([r[0] / GOAL_LOOKAHEAD, r[1] / GOAL_LOOKAHEAD, np.cos(a), np.sin(a), dg], np.float32)
+    free = free_space(field, pose) if field is not None else np.ones(4, np.float32)
+    return np.r_[np.array([r[0] / GOAL_LOOKAHEAD, r[1] / GOAL_LOOKAHEAD, np.cos(a), np.sin(a), dg]), free].astype(
+        np.float32)
 
 
 def future_in_frame(poses: np.ndarray, t: int, frame: np.ndarray, offset=None, dyaw: float = 0.0) -> np.ndarray:
@@ -115,7 +137,7 @@ def action_of(traj) -> int:
 
 
 def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedState, t_index: int,
-                  world: World | None = None) -> int:
+                  world: World | None = None, reference: str | None = None) -> int:
     """The "correct" high-level action (index into :data:`ACTIONS`) at an arbitrary state: the
     action of the expert's future from there (:func:`splatsearch.social.convoi.runner.expert_rollout`
     over the TPN horizon, continued to the goal when it arrives), labelled like the training
@@ -123,10 +145,17 @@ def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedSta
 
     pose (3,) world; vel (2,) the robot's (v, ω); peds: the simulator's people; t_index: the
     scenario step. This is what the offline captioner says the robot *should* do, as a VLM
-    judging the view would, whatever the robot then did."""
-    from ..convoi.runner import GOAL_TOLERANCE, expert_rollout
+    judging the view would, whatever the robot then did. ``reference``: whose future
+    (default :data:`~splatsearch.social.convoi.runner.REFERENCE`, the human-like walker; ``"expert"``:
+    the DWA-with-critics)."""
+    from ..convoi.runner import GOAL_TOLERANCE, REFERENCE, expert_rollout
 
-    poses = expert_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON, world)
+    if (reference or REFERENCE) == "human":
+        from ..convoi.human import walker_rollout
+
+        poses = walker_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON)
+    else:
+        poses = expert_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON, world)
     if np.linalg.norm(poses[-1, :2] - np.asarray(scn.goal)[:2]) < GOAL_TOLERANCE:
         poses = extend_to_goal(poses, scn.goal)
     return action_of(future_in_frame(poses, 0, np.asarray(pose, np.float64)))
@@ -151,5 +180,5 @@ def observe(scn, pose, people, prev_pose, prev_people, path: np.ndarray | None =
     img = render_view(field, jnp.asarray(pose, F32), jnp.asarray(people, F32), act, palette_of(scn))
     pts, ok = lidar_points(field, jnp.asarray(pose, F32), jnp.asarray(people, F32), act,
                            jnp.asarray(prev_pose, F32), jnp.asarray(prev_people, F32))
-    g = goal_features(scn.global_path() if path is None else path, scn.goal, np.asarray(pose, np.float64))
+    g = goal_features(scn.global_path() if path is None else path, scn.goal, np.asarray(pose, np.float64), field)
     return Observation(np.asarray(img), np.asarray(pts), np.asarray(ok), g)

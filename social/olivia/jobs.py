@@ -43,7 +43,7 @@ def data_job(scenario: str, seed: int, every: int, augment: int):
     """Samples of one expert episode (exactly :func:`build_dataset` on one scenario and seed)."""
     from .dataset import build_dataset
 
-    return build_dataset([scenario], [seed], every=every, augment=augment)
+    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=True)
 
 
 def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Sequence[int]], *, every: int,
@@ -109,11 +109,12 @@ def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, basel
     order :func:`~splatsearch.social.olivia.train.table_one` averages them."""
     from .planner import VARIANT_LABELS, run_olivia_episode
     from .train import episode_metrics, run_baseline
+    from ..convoi.runner import REFERENCE
     from ..convoi.scenarios import make_scenario
 
     planner = _planner(checkpoint, stamp)
     scn = make_scenario(scenario, seed)
-    ref = run_baseline(scn, "expert")
+    ref = run_baseline(scn, REFERENCE)
     out = {}
     for v in variants:
         out[VARIANT_LABELS[v]] = episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref)
@@ -134,7 +135,7 @@ def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequenc
     from splatsearch.io import atomic_write_bytes
     from splatsearch.parallel import Job
 
-    from .train import _mean
+    from .train import _mean, win_counts
 
     checkpoint = os.path.abspath(checkpoint)
     st = os.stat(checkpoint)
@@ -166,7 +167,9 @@ def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequenc
         for seed in seeds:
             for method, m in done[f"{name}/{seed}"].items():
                 per.setdefault(method, []).append(m)
+        wins = win_counts(per)
         for method, ms in per.items():
-            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms))
+            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms)
+                        | ({"wins": wins[method]} if method in wins else {}))
         log(f"Table I: {name} done")
     return rows

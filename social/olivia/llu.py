@@ -92,13 +92,16 @@ class LLUBuffer:
     size: int = 50
     images: list = field(default_factory=list)
     scenes: list = field(default_factory=list)
+    observations: list = field(default_factory=list)
 
-    def add(self, image: np.ndarray, scene=None) -> bool:
-        """Store one image (H, W, 3) (and the privileged scene a template captioner needs);
+    def add(self, image: np.ndarray, scene=None, observation=None) -> bool:
+        """Store one image (H, W, 3) (and the privileged scene a template captioner needs, and
+        optionally the whole observation, to show what the update changes on these views);
         returns True when the buffer is full."""
         if len(self.images) < self.size:
             self.images.append(np.asarray(image))
             self.scenes.append(scene)
+            self.observations.append(observation)
         return self.full
 
     @property
@@ -108,6 +111,7 @@ class LLUBuffer:
     def clear(self) -> None:
         self.images.clear()
         self.scenes.clear()
+        self.observations.clear()
 
 
 def llu_update(params, images: np.ndarray, captions: list, cfg: LLUConfig = LLUConfig(),

@@ -160,7 +160,9 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     reached = False
     traj_world = None
     plan_s, n_plans = 0.0, 0
-    expert_world = make_world(scn, "expert") if buffer is not None else None
+    from ..convoi.runner import REFERENCE
+
+    expert_world = make_world(scn, "expert") if buffer is not None and REFERENCE == "expert" else None
     for t in range(n):
         if t % cfg.replan_every == 0 or traj_world is None:
             tp = max(len(poses) - 1 - PREV_STEPS, 0)
@@ -176,7 +178,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 # take there (the expert's), not the one it chose, which would only teach the
                 # encoders the planner's own mistakes
                 act = expert_action(scn, pose, cmds[-1] if cmds else np.zeros(2, np.float32), peds, t, expert_world)
-                buffer.add(obs.image, caption_scene(scn, pose, people[-1], np.asarray(peds.vel), act))
+                buffer.add(obs.image, caption_scene(scn, pose, people[-1], np.asarray(peds.vel), act), obs)
         cmd, fstate = follow_step(cfg.follower, fstate, jnp.asarray(pose), jnp.asarray(traj_world, F32), scn.dt)
         new_pose = np.asarray(step_unicycle(jnp.asarray(pose), cmd, scn.dt))
         if float(field_lookup(field, jnp.asarray(new_pose[:2]))) < ROBOT_RADIUS:

@@ -95,9 +95,9 @@ class SCIE(nn.Module):
         x = nn.Conv(c.width, (c.patch, c.patch), strides=(c.patch, c.patch), padding="VALID", name="patch")(x)
         B = x.shape[0]
         x = x.reshape(B, -1, c.width)
-        cls = self.param("cls", nn.initializers.normal(0.02), (1, 1, c.width))
+        cls = self.param("cls", nn.initializers.normal(0.02), (1, 1, c.width), F32)
         x = jnp.concatenate([jnp.broadcast_to(cls, (B, 1, c.width)), x], 1)
-        x = x + self.param("pos", nn.initializers.normal(0.02), (1, x.shape[1], c.width))
+        x = x + self.param("pos", nn.initializers.normal(0.02), (1, x.shape[1], c.width), F32)
         for _ in range(c.depth):
             x = Block(c.width, c.heads, c.mlp)(x)
         return nn.Dense(c.embed, use_bias=False, name="proj")(nn.LayerNorm()(x[:, 0]))
@@ -116,7 +116,7 @@ class SCTE(nn.Module):
         if L > c.text_len:
             raise ValueError(f"token length {L} exceeds the positional table {c.text_len}")
         x = nn.Embed(c.vocab, c.text_width)(ids)
-        x = x + self.param("pos", nn.initializers.normal(0.02), (c.text_len, c.text_width))[None, :L]
+        x = x + self.param("pos", nn.initializers.normal(0.02), (c.text_len, c.text_width), F32)[None, :L]
         att = mask[:, None, None, :] & mask[:, None, :, None]
         # a row with no valid key (a padded query) would be all -inf: let it see itself
         att = att | jnp.eye(L, dtype=bool)[None, None]

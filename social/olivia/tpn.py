@@ -132,7 +132,7 @@ class LidarEncoder(nn.Module):
             x = ResBlock(ch, 2 if i == 2 else 1)(x)
         B = x.shape[0]
         x = nn.Dense(c.C)(x.reshape(B, -1, x.shape[-1]))
-        return x + self.param("pos", nn.initializers.normal(0.02), (1, x.shape[1], c.C))
+        return x + self.param("pos", nn.initializers.normal(0.02), (1, x.shape[1], c.C), F32)
 
 
 class CrossLayer(nn.Module):
@@ -145,7 +145,7 @@ class CrossLayer(nn.Module):
     @nn.compact
     def __call__(self, q, kv, kv_mask):
         B = q.shape[0]
-        null = self.param("null", nn.initializers.normal(0.02), (1, 1, self.C))
+        null = self.param("null", nn.initializers.normal(0.02), (1, 1, self.C), F32)
         kv = jnp.concatenate([jnp.broadcast_to(null, (B, 1, self.C)), kv], 1)
         m = jnp.concatenate([jnp.ones((B, 1), bool), kv_mask], 1)
         a = nn.MultiHeadDotProductAttention(num_heads=self.heads, qkv_features=self.C)(q, kv, mask=m[:, None, None, :])
@@ -164,7 +164,7 @@ class GRUHead(nn.Module):
         c = self.cfg
         B = q.shape[0]
         h0 = jnp.tanh(nn.Dense(c.gru)(q))
-        steps = self.param("steps", nn.initializers.normal(0.5), (c.horizon, 16))
+        steps = self.param("steps", nn.initializers.normal(0.5), (c.horizon, 16), F32)
         inputs = jnp.concatenate([jnp.broadcast_to(steps, (B, c.horizon, 16)),
                                   jnp.broadcast_to(q[:, None, :], (B, c.horizon, q.shape[-1]))], -1)
         out = nn.RNN(nn.GRUCell(c.gru))(inputs, initial_carry=h0)
@@ -185,7 +185,7 @@ class TPN(nn.Module):
         img = nn.Dense(c.img_tokens * c.C)(nn.relu(nn.Dense(c.C)(e_img))).reshape(B, c.img_tokens, c.C)
         lid = LidarEncoder(c)(points, points_valid)
         g = nn.relu(nn.Dense(c.C, name="goal_ffn")(goal))[:, None]  # single-layer FFN + ReLU
-        q = jnp.broadcast_to(self.param("query", nn.initializers.normal(1.0), (1, c.K, c.C)), (B, c.K, c.C))
+        q = jnp.broadcast_to(self.param("query", nn.initializers.normal(1.0), (1, c.K, c.C), F32), (B, c.K, c.C))
         q = CrossLayer(c.C, c.heads, name="sc_clip_attn")(q, img, jnp.broadcast_to(use_image[:, None], img.shape[:2]))
         q = CrossLayer(c.C, c.heads, name="lidar_attn")(q, lid, jnp.broadcast_to(use_lidar[:, None], lid.shape[:2]))
         q = CrossLayer(c.C, c.heads, name="goal_attn")(q, g, jnp.ones((B, 1), bool))

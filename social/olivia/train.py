@@ -53,6 +53,8 @@ from .planner import (
 from .captions import LONG_LEN, SHORT_LEN, TemplateCaptioner, with_action
 from .dataset import Samples, build_dataset
 from .features import action_of
+from ..convoi.runner import REFERENCE
+from ..convoi.scenario_names import DOOR_TRAIN_SEEDS, LLU_ADAPT_SEEDS, LLU_TEST_SEEDS
 from ..convoi.scenarios import TABLE_ONE_SEEDS, THESIS_SCENARIOS, make_scenario
 from .tokenizer import DEFAULT_TOKENIZER
 
@@ -264,6 +266,17 @@ def val_batches(arrays: dict, max_rows: int) -> list[dict]:
 
 # -- the pipeline ---------------------------------------------------------------------------------
 
+def assert_held_out(s: Samples, scenario: str, seeds: Sequence[int]) -> None:
+    """Raise ValueError when any sample of ``s`` comes from ``scenario`` with one of ``seeds``
+    (the held-out doorway's adaptation and test seeds must never be trained on)."""
+    from ..convoi.scenario_names import SCENARIOS
+
+    bad = (np.asarray(s.scenario) == SCENARIOS.index(scenario)) & np.isin(np.asarray(s.seed), np.asarray(seeds))
+    if bad.any():
+        raise ValueError(f"{int(bad.sum())} training samples come from held-out {scenario} seeds "
+                         f"{sorted(set(np.asarray(s.seed)[bad].tolist()))}")
+
+
 @dataclass
 class TrainConfig:
     """Data: scenarios, train / validation seeds, sampling stride (steps) and augmented copies.
@@ -290,6 +303,8 @@ class TrainConfig:
     patience: int = 5
     db_size: int = 1000
     seed: int = 0
+    door_seeds: tuple = DOOR_TRAIN_SEEDS
+    vary_geometry: bool = True
 
 
 def _text_arrays(s: Samples):
@@ -397,7 +412,7 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
         train, val = Samples.load(data_path), Samples.load(val_path)
         log(f"data: reused {len(train)} train / {len(val)} val samples from {out_dir}")
     else:
-        n_jobs = len(tc.scenarios) * (len(tc.train_seeds) + len(tc.val_seeds))
+        n_jobs = len(tc.scenarios) * (len(tc.train_seeds) + len(tc.val_seeds)) + len(tc.door_seeds)
         tid = task("expert episodes + renders", n_jobs)
         done = [0]
 
@@ -405,10 +420,15 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
             done[0] += 1
             advance(tid, completed=done[0], description=f"expert {label}")
 
-        train = build_dataset(tc.scenarios, tc.train_seeds, every=tc.every, augment=tc.augment, progress=prog)
-        val = build_dataset(tc.scenarios, tc.val_seeds, every=tc.every, augment=tc.augment, progress=prog)
+        kw = dict(every=tc.every, augment=tc.augment, progress=prog, vary_geometry=tc.vary_geometry)
+        train = build_dataset(tc.scenarios, tc.train_seeds, **kw)
+        if tc.door_seeds:
+            # doors of sampled widths (1.02-1.6 m, the held-out doorway's 1.1 m inside), never its seeds
+            train = Samples.concat([train, build_dataset(("doorway",), tc.door_seeds, **kw)])
+        val = build_dataset(tc.scenarios, tc.val_seeds, **kw)
         train.save(data_path)
         val.save(val_path)
+    assert_held_out(train, "doorway", LLU_ADAPT_SEEDS + tuple(LLU_TEST_SEEDS))
     summary["data"] = {"train": len(train), "val": len(val), "seconds": time.perf_counter() - t0,
                        "actions": np.bincount(train.action, minlength=6).tolist()}
     log(f"data: {len(train)} train / {len(val)} val samples in {summary['data']['seconds']:.0f} s")
@@ -519,18 +539,38 @@ def _stage_summary(r: StageResult) -> dict:
 # -- evaluation -----------------------------------------------------------------------------------
 
 def episode_metrics(res, ref) -> dict:
-    """MSE (m²) and Hausdorff (m) against the expert path ``ref`` (EpisodeResult), PSV (s, edge
-    gap < 0.25 m), goal reached, plan ms."""
-    from ..convoi.metrics import hausdorff, mse, psv_duration
+    """MSE (m²) and Hausdorff (m) against the reference path ``ref`` (EpisodeResult), PSV (s, edge
+    gap < 0.25 m), goal reached, plan ms, and the SEANavBench-style metrics of
+    :func:`~splatsearch.social.convoi.metrics.social_metrics` (completion, path irregularity,
+    time not moving, personal / intimate zone time, min distance to people)."""
+    from ..convoi.metrics import hausdorff, mse, psv_duration, social_metrics
 
     return {"mse": mse(res.robot, ref.robot), "haus": hausdorff(res.robot, ref.robot),
             "psv": psv_duration(res.robot[:, :2], res.people, res.dt, 0.25, valid=res.active, robot_radius=0.25,
                                 person_radius=0.25),
-            "reached": bool(res.reached), "plan_ms": float(res.plan_ms)}
+            "reached": bool(res.reached), "plan_ms": float(res.plan_ms)} | social_metrics(
+                res.robot, res.people, res.active, res.dt, res.reached)
+
+
+def win_counts(per: dict[str, list], ours: str = "OLiVia-Nav") -> dict[str, dict]:
+    """Per-seed wins of ``ours`` over every other method of ``per`` ({method: [episode
+    metrics per seed, same seed order]}): {method: {"mse": n, "haus": n, "psv": n (strictly
+    lower), "psv_ties": n, "n": seeds}}."""
+    out = {}
+    if ours not in per:
+        return out
+    mine = per[ours]
+    for method, ms in per.items():
+        if method == ours:
+            continue
+        out[method] = {k: int(sum(a[k] < b[k] for a, b in zip(mine, ms))) for k in ("mse", "haus", "psv")}
+        out[method]["psv_ties"] = int(sum(a["psv"] == b["psv"] for a, b in zip(mine, ms)))
+        out[method]["n"] = len(ms)
+    return out
 
 
 def _mean(rows: list[dict]) -> dict:
-    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows else {}
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if not isinstance(rows[0][k], dict)} if rows else {}
 
 
 def run_baseline(scn, kind: str):
@@ -556,15 +596,17 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
         per: dict[str, list] = {}
         for seed in seeds:
             scn = make_scenario(name, seed)
-            ref = run_baseline(scn, "expert")
+            ref = run_baseline(scn, REFERENCE)
             for v in variants:
                 per.setdefault(VARIANT_LABELS[v], []).append(episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref))
             for b in baselines:
                 per.setdefault(names.get(b, b), []).append(episode_metrics(run_baseline(scn, b), ref))
             if progress is not None:
                 progress.advance(tid)
+        wins = win_counts(per)
         for method, ms in per.items():
-            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms))
+            rows.append({"scenario": name, "method": method, "n": len(ms)} | _mean(ms)
+                        | ({"wins": wins[method]} if method in wins else {}))
         log(f"Table I: {name} done")
     return rows
 
@@ -588,29 +630,61 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
     return buf, used
 
 
-def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = (500, 501, 502, 503),
-              test_seeds: Sequence[int] = (1000, 1001, 1002), llu: LLUConfig = LLUConfig(),
+def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Sequence[str]) -> dict:
+    """What one LLU update changed on the buffer's own views (eq 4's mechanism, step by step):
+    the actions of the new captions; for each view, the action of the caption D_T retrieves
+    (before / after), the TSM's selected plan index and that plan's action (before / after);
+    and how often the selected plan now performs the caption's action."""
+    from .captions import ACTIONS, action_from_text
+
+    cap_act = [action_from_text(c) for c in captions]
+    rows = []
+    for obs, a in zip(buf.observations, cap_act):
+        if obs is None:
+            continue
+        pb = before.plan(obs.image, obs.points, obs.points_valid, obs.goal)
+        pa = after.plan(obs.image, obs.points, obs.points_valid, obs.goal)
+        rows.append({"caption_action": int(a), "retrieved_before": pb.action, "retrieved_after": pa.action,
+                     "index_before": pb.index, "index_after": pa.index,
+                     "plan_action_before": action_of(pb.trajs[pb.index]),
+                     "plan_action_after": action_of(pa.trajs[pa.index])})
+    n = max(len(rows), 1)
+    frac = lambda k, ref="caption_action": sum(r[k] == r[ref] for r in rows) / n  # noqa: E731
+    return {"caption_actions": {ACTIONS[i]: int(sum(c == i for c in cap_act)) for i in range(len(ACTIONS))},
+            "views": len(rows),
+            "retrieved_action_right_before": frac("retrieved_before"),
+            "retrieved_action_right_after": frac("retrieved_after"),
+            "selected_index_changed": sum(r["index_before"] != r["index_after"] for r in rows) / n,
+            "plan_action_right_before": frac("plan_action_before"),
+            "plan_action_right_after": frac("plan_action_after"),
+            "per_view": rows}
+
+
+def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = LLU_ADAPT_SEEDS,
+              test_seeds: Sequence[int] = LLU_TEST_SEEDS, llu: LLUConfig = LLUConfig(),
               train_captions: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
               progress=None, buffer_every: int = 2) -> tuple[list[dict], OliviaNav, dict]:
     """Table II form on a scenario held out of training: every variant before and after one LLU
     update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
     ``adapt_seeds`` episodes, as many as it takes (:func:`fill_buffer`); its images are captioned
     by the template captioner (the offline stand-in for the VLM); D_T is rebuilt from its
-    offline captions plus the new ones."""
+    offline captions plus the new ones. The info dict holds the update's mechanism
+    (:func:`llu_effect`), D_T's size before and after, and per-seed before/after metrics."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
+
     def evaluate(p: OliviaNav) -> dict:
         out = {}
         for seed in test_seeds:
             scn = make_scenario(scenario, seed)
-            ref = run_baseline(scn, "expert")
+            ref = run_baseline(scn, REFERENCE)
             for v in VARIANTS:
                 out.setdefault(v, []).append(episode_metrics(run_olivia_episode(scn, p.with_variant(v)), ref))
             if progress is not None:
                 progress.advance(tid)
-        return {v: _mean(r) for v, r in out.items()}
+        return out
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
-    before = evaluate(planner)
+    before_seeds = evaluate(planner)
     buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every)
     cap = TemplateCaptioner()
     captions = [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
@@ -620,25 +694,51 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
     base = list(train_captions) if train_captions is not None else list(planner.db.captions)
     db = build_text_db(new_clip, base + captions, planner.cfg.clip)
     after_planner = OliviaNav(dict(planner.params, clip=new_clip), db, planner.cfg, planner.variant)
-    log(f"LLU: |B| = {len(buf.images)}, eq 4 loss {losses[0]:.3f} -> {losses[-1]:.3f}; |D_T| = {len(db.captions)}")
-    after = evaluate(after_planner)
+    effect = llu_effect(planner, after_planner, buf, captions)
+    log(f"LLU: |B| = {len(buf.images)}, eq 4 loss {losses[0]:.3f} -> {losses[-1]:.3f}; |D_T| {len(planner.db.captions)} "
+        f"-> {len(db.captions)}; on the buffer's views the retrieved caption's action is right "
+        f"{effect['retrieved_action_right_before']:.2f} -> {effect['retrieved_action_right_after']:.2f}, the selected "
+        f"plan performs the caption's action {effect['plan_action_right_before']:.2f} -> "
+        f"{effect['plan_action_right_after']:.2f}, selected index changed on {effect['selected_index_changed']:.2f}")
+    after_seeds = evaluate(after_planner)
+    before = {v: _mean(r) for v, r in before_seeds.items()}
+    after = {v: _mean(r) for v, r in after_seeds.items()}
     rows = [{"method": VARIANT_LABELS[v], "mse_before": before[v]["mse"], "haus_before": before[v]["haus"],
-             "mse_after": after[v]["mse"], "haus_after": after[v]["haus"]} for v in VARIANTS]
-    return rows, after_planner, {"llu_losses": losses, "buffer": len(buf.images), "adapt_seeds": used}
+             "mse_after": after[v]["mse"], "haus_after": after[v]["haus"],
+             "reached_before": int(sum(m["reached"] for m in before_seeds[v])),
+             "reached_after": int(sum(m["reached"] for m in after_seeds[v])), "n": len(test_seeds),
+             "psv_before": before[v]["psv"], "psv_after": after[v]["psv"],
+             "min_dist_after": after[v]["min_dist"], "intimate_s_after": after[v]["intimate_s"]}
+            for v in VARIANTS]
+    info = {"llu_losses": losses, "buffer": len(buf.images), "adapt_seeds": used, "captions": captions,
+            "db_before": len(planner.db.captions), "db_after": len(db.captions), "effect": effect,
+            "per_seed": {"before": before_seeds, "after": after_seeds}}
+    return rows, after_planner, info
 
 
 def format_table_one(rows: list[dict]) -> str:
-    lines = ["| Scenario | Method | MSE ↓ (m²) | Haus ↓ (m) | PSV ↓ (s) | reached | plan ms |",
-             "|---|---|---|---|---|---|---|"]
+    """Table I in markdown: the thesis' MSE / Hausdorff / PSV, OLiVia-Nav's per-seed wins over
+    each baseline (MSE / Haus / PSV strictly lower, of n), then the SEANavBench-style metrics."""
+    lines = ["| Scenario | Method | MSE ↓ (m²) | Haus ↓ (m) | PSV ↓ (s) | OLiVia wins MSE/Haus/PSV | completed | "
+             "irregularity (rad/m) | not moving (s) | personal (s) | intimate (s) | min dist (m) | plan ms |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['scenario']} | {r['method']} | {r['mse']:.4f} | {r['haus']:.4f} | {r['psv']:.1f} | "
-                     f"{r['reached']:.2f} | {r['plan_ms']:.1f} |")
+        w = r.get("wins")
+        ws = f"{w['mse']}/{w['haus']}/{w['psv']} of {w['n']}" if w else ""
+        lines.append(f"| {r['scenario']} | {r['method']} | {r['mse']:.4f} | {r['haus']:.4f} | {r['psv']:.1f} | {ws} | "
+                     f"{r.get('completed', r['reached']):.2f} | {r.get('irregularity', float('nan')):.2f} | "
+                     f"{r.get('not_moving_s', float('nan')):.1f} | {r.get('personal_s', float('nan')):.1f} | "
+                     f"{r.get('intimate_s', float('nan')):.1f} | {r.get('min_dist', float('nan')):.2f} | "
+                     f"{r['plan_ms']:.1f} |")
     return "\n".join(lines)
 
 
 def format_table_two(rows: list[dict]) -> str:
-    lines = ["| Method | MSE before ↓ | Haus before ↓ | MSE after ↓ | Haus after ↓ |", "|---|---|---|---|---|"]
+    lines = ["| Method | MSE before ↓ | Haus before ↓ | reached before | MSE after ↓ | Haus after ↓ | reached after | "
+             "MSE change |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['method']} | {r['mse_before']:.4f} | {r['haus_before']:.4f} | {r['mse_after']:.4f} | "
-                     f"{r['haus_after']:.4f} |")
+        ch = (r["mse_after"] - r["mse_before"]) / max(r["mse_before"], 1e-9)
+        lines.append(f"| {r['method']} | {r['mse_before']:.4f} | {r['haus_before']:.4f} | "
+                     f"{r.get('reached_before', '')}/{r.get('n', '')} | {r['mse_after']:.4f} | {r['haus_after']:.4f} | "
+                     f"{r.get('reached_after', '')}/{r.get('n', '')} | {100 * ch:+.0f} % |")
     return "\n".join(lines)

@@ -46,7 +46,9 @@ class TSM(nn.Module):
     def __call__(self, e_text, trajs, use_text):
         c = self.cfg
         B, K = trajs.shape[:2]
-        e_text = jnp.where(use_text[:, None], e_text, 0.0)
+        # float32 throughout, also when the caller runs JAX with x64 on (the GRU's carry is float32)
+        trajs = jnp.asarray(trajs, F32)
+        e_text = jnp.where(use_text[:, None], jnp.asarray(e_text, F32), 0.0)
         e_tau = nn.Dense(c.width)(nn.relu(nn.Dense(c.width)(e_text)))  # FFN(E_T) = E_τ
         x = nn.relu(nn.Dense(64)(trajs.reshape(B * K, c.horizon, 3)))  # per-pose FFN
         e_c = nn.RNN(nn.GRUCell(c.width))(x)[:, -1].reshape(B, K, c.width)  # GRU -> E_C
