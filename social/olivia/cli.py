@@ -134,7 +134,7 @@ def cmd_data(args) -> int:
     with executor_from_args(args) as ex, _progress(args.no_progress) as prog:
         sizes = build_datasets(args.out, args.scenarios, {"train": args.train_seeds, "val": args.val_seeds},
                                every=args.every, augment=args.augment, executor=ex, resume=args.resume,
-                               on_update=_job_task(prog, "expert episodes"))
+                               on_update=_job_task(prog, "expert episodes"), vary_geometry=True)
     Console().print(f"{sizes['train']} train / {sizes['val']} val samples -> {args.out}/samples_train.npz, "
                     "samples_val.npz")
     return 0

@@ -39,15 +39,16 @@ def _prepare(executor) -> None:
 
 # -- expert data ---------------------------------------------------------------------------------
 
-def data_job(scenario: str, seed: int, every: int, augment: int):
+def data_job(scenario: str, seed: int, every: int, augment: int, vary_geometry: bool = False):
     """Samples of one expert episode (exactly :func:`build_dataset` on one scenario and seed)."""
     from .dataset import build_dataset
 
-    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=True)
+    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=vary_geometry)
 
 
 def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Sequence[int]], *, every: int,
-                   augment: int, executor, resume: bool = False, on_update: Callable | None = None) -> dict:
+                   augment: int, executor, resume: bool = False, on_update: Callable | None = None,
+                   vary_geometry: bool = False) -> dict:
     """``OUT/samples_{split}.npz`` for every split in ``splits`` (``{"train": seeds, "val": seeds}``),
     the files ``social train --out OUT`` reuses. Returns ``{split: number of samples}``.
 
@@ -62,9 +63,11 @@ def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Seq
     order = [(split, name, int(seed)) for split, seeds in splits.items() for name in scenarios for seed in seeds]
 
     def path(split, name, seed):
-        return os.path.join(parts, f"{split}-{name}-{seed}-every{every}-aug{augment}.npz")
+        geo = "-geo" if vary_geometry else ""  # never resume from parts of the other geometry
+        return os.path.join(parts, f"{split}-{name}-{seed}-every{every}-aug{augment}{geo}.npz")
 
-    jobs = [Job(f"{split}/{name}/{seed}", data_job, (name, seed, every, augment)) for split, name, seed in order
+    jobs = [Job(f"{split}/{name}/{seed}", data_job, (name, seed, every, augment, vary_geometry))
+            for split, name, seed in order
             if not (resume and os.path.exists(path(split, name, seed)))]
     _prepare(executor)
     failed = []
