@@ -13,9 +13,9 @@ goal image; an object's score is its best count over all views of all its runs, 
 
 Reported per row: ROC AUC of "goal vs same-class look-alike" from that score (positives: the goal
 instance of each episode; negatives: every other instance of the goal's class that got views;
-ties count half), the paired per-episode comparison (goal's best count vs the best look-alike's:
-wins, ties, losses), the mean counts, and a per-object table. ``--out`` writes everything as JSON
-(atomically).
+ties count half) with a bootstrap interval over episodes, the paired per-episode comparison
+(goal's best count vs the best look-alike's: wins, ties, losses), the mean counts, and a
+per-object table. ``--out`` writes everything as JSON (atomically).
 """
 
 from __future__ import annotations
@@ -110,6 +110,28 @@ def separation(records: list[dict]) -> dict:
             "mean_margin": float(np.mean(margins)) if margins else None}
 
 
+def bootstrap_auc(records: list[dict], n: int = 2000, seed: int = 0, level: float = 0.95) -> tuple[float, float] | None:
+    """A ``level`` percentile interval of the ROC AUC over episodes resampled with replacement
+    (objects of one episode share a goal image, so they are resampled together); None without
+    both classes."""
+    from splatsearch.search.matching import roc_auc
+
+    eps = sorted({r["episode"] for r in records})
+    by = {e: [r for r in records if r["episode"] == e] for e in eps}
+    rng = np.random.default_rng(seed)
+    aucs = []
+    for _ in range(n):
+        recs = [r for i in rng.integers(0, len(eps), len(eps)) for r in by[eps[i]]]
+        pos = [r["best"] for r in recs if r["is_goal"]]
+        neg = [r["best"] for r in recs if not r["is_goal"]]
+        if pos and neg:
+            aucs.append(roc_auc(pos, neg))
+    if not aucs:
+        return None
+    q = (1 - level) / 2
+    return float(np.quantile(aucs, q)), float(np.quantile(aucs, 1 - q))
+
+
 def build_inpainter(name: str):
     """None for the stored views; else the plug-in (raises what the plug-in loader raises)."""
     if name in STORED:
@@ -156,10 +178,13 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             recs = object_scores(files, matcher, inp_name, inpainter)
             sep = separation(recs)
+            sep["auc_ci95"] = bootstrap_auc(recs)
             row = {"inpainter": inp_name, "matcher": spec, **sep, "seconds": round(time.perf_counter() - t0, 1),
                    "load1": round(os.getloadavg()[0], 2), "objects": recs}
             rows.append(row)
             auc = "n/a" if sep["auc"] is None else f"{sep['auc']:.3f}"
+            if sep["auc_ci95"] is not None:
+                auc += " [{:.2f}, {:.2f}]".format(*sep["auc_ci95"])
             console.print(f"{inp_name:>8} | {spec:<40} | AUC {auc} | goal {sep['mean_goal']:.1f} vs look-alike "
                           f"{sep['mean_lookalike']:.1f} | paired W/T/L {sep['wins']}/{sep['ties']}/{sep['losses']} "
                           f"| {row['seconds']} s")
@@ -170,11 +195,12 @@ def main(argv=None) -> int:
                               " ".join(map(str, r["per_run"])))
                 console.print(t)
     t = Table(title=f"{args.views}: {len(files)} episodes, {n_runs} NVSM runs")
-    for c in ("inpainter", "matcher", "ROC AUC", "goals", "look-alikes", "mean goal", "mean look-alike",
+    for c in ("inpainter", "matcher", "ROC AUC", "95% CI (episodes)", "goals", "look-alikes", "mean goal", "mean look-alike",
               "paired W/T/L"):
         t.add_column(c)
     for r in rows:
-        t.add_row(r["inpainter"], r["matcher"], "n/a" if r["auc"] is None else f"{r['auc']:.3f}", str(r["n_goal"]),
+        ci = "n/a" if r["auc_ci95"] is None else "{:.2f}-{:.2f}".format(*r["auc_ci95"])
+        t.add_row(r["inpainter"], r["matcher"], "n/a" if r["auc"] is None else f"{r['auc']:.3f}", ci, str(r["n_goal"]),
                   str(r["n_lookalike"]), f"{r['mean_goal']:.1f}", f"{r['mean_lookalike']:.1f}",
                   f"{r['wins']}/{r['ties']}/{r['losses']}")
     console.print(t)

@@ -549,8 +549,17 @@ class LocalFeatureMatcher:
         na = cv2.undistortPoints(np.asarray(pts_a, np.float64).reshape(-1, 1, 2), Ka, None).reshape(-1, 2)
         nb = cv2.undistortPoints(np.asarray(pts_b, np.float64).reshape(-1, 1, 2), Kb, None).reshape(-1, 2)
         f = 0.5 * (Ka[0, 0] + Kb[0, 0])
-        E, inl = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.RANSAC, prob=0.999,
-                                      threshold=self.ransac_thresh / f)
+        # several keypoints at one spot (SIFT's orientations) give repeated matches; a minimal sample
+        # of repeats makes the five-point solver's polynomial degenerate, which OpenCV raises on
+        _, first = np.unique(np.round(np.hstack([na, nb]), 6), axis=0, return_index=True)
+        na, nb = na[np.sort(first)], nb[np.sort(first)]
+        if len(na) < self.min_matches:
+            return 0
+        try:
+            E, inl = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.RANSAC, prob=0.999,
+                                          threshold=self.ransac_thresh / f)
+        except cv2.error:  # a degenerate sample left (collinear or near-identical points)
+            return 0
         if E is None or inl is None:
             return 0
         # several solutions can come back stacked; OpenCV's mask is that of the best one
