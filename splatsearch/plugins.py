@@ -22,7 +22,7 @@ factory     kind                                class
 detector    ``sim``                             :class:`~splatsearch.search.SimDetector`
 detector    ``yolo:PATH[,sam=PATH]``            :class:`~splatsearch.search.UltralyticsDetector`
 matcher     ``sift``                            :class:`~splatsearch.search.SIFTMatcher`
-matcher     ``rootsift``, ``akaze``, ``features`` :class:`~splatsearch.search.matching.LocalFeatureMatcher`
+matcher     ``rootsift``, ``features``, ...     :class:`~splatsearch.search.matching.LocalFeatureMatcher`
 matcher     ``loftr:PATH``                      :class:`~splatsearch.search.LoFTRMatcher`
 inpainter   ``opencv``                          :class:`~splatsearch.search.OpenCVInpainter`
 inpainter   ``diffusion:PATH``                  :class:`~splatsearch.search.DiffusionInpainter`
@@ -58,7 +58,8 @@ DETECTOR_HELP = ("goal-class detector: 'sim' (the simulator's ground-truth masks
                  "YOLO .pt/.onnx file; a box-only model with sam=PATH gets SAM/MobileSAM masks)")
 MATCHER_HELP = ("goal-image matcher: 'sift[,contrast_threshold=0.04][,ratio=0.75]' (OpenCV SIFT + RANSAC; "
                 "default), 'rootsift' / 'akaze' (RootSIFT or AKAZE, ratio test + mutual nearest neighbours + "
-                "RANSAC), 'features[,detector=sift|rootsift|akaze][,mutual=true][,gms=false][,colour_tol=none]"
+                "RANSAC), 'sift-essential' (SIFT + ratio test + essential-matrix RANSAC with the known "
+                "intrinsics), 'features[,detector=sift|rootsift|akaze][,mutual=true][,gms=false][,colour_tol=none]"
                 "[,model=fundamental|homography|essential|none][,min_inlier_ratio=0]' (every option; "
                 "docs/matching.md) or 'loftr:PATH[,conf_thresh=0.5][,max_side=640][,device=cpu]' (a kornia LoFTR "
                 "checkpoint)")
@@ -232,6 +233,7 @@ _MATCHERS = {
     "features": _Kind(_preset_matcher("features"), False, _LOCAL_OPTS),
     "rootsift": _Kind(_preset_matcher("rootsift"), False, _LOCAL_OPTS),
     "akaze": _Kind(_preset_matcher("akaze"), False, _LOCAL_OPTS),
+    "sift-essential": _Kind(_preset_matcher("sift-essential"), False, _LOCAL_OPTS),
     "loftr": _Kind(_loftr_matcher, True, ("conf_thresh", "max_side", "ransac_thresh", "model", "min_matches",
                                           "device")),
 }

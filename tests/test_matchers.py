@@ -66,7 +66,7 @@ def _look_alike_views(env, a_id, b_id):
     return _PAIRS[a_id, b_id]
 
 
-SPECS = ["rootsift", "features,detector=sift,ratio=0.75,mutual=true",
+SPECS = ["rootsift", "sift-essential", "features,detector=sift,ratio=0.75,mutual=true",
          "features,model=essential", "features,model=homography", "features,gms=true,model=none",
          "features,colour_tol=20", "features,min_inlier_ratio=0.3", "akaze"]
 
