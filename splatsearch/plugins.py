@@ -22,6 +22,7 @@ factory     kind                                class
 detector    ``sim``                             :class:`~splatsearch.search.SimDetector`
 detector    ``yolo:PATH[,sam=PATH]``            :class:`~splatsearch.search.UltralyticsDetector`
 matcher     ``sift``                            :class:`~splatsearch.search.SIFTMatcher`
+matcher     ``rootsift``, ``features``, ...     :class:`~splatsearch.search.matching.LocalFeatureMatcher`
 matcher     ``loftr:PATH``                      :class:`~splatsearch.search.LoFTRMatcher`
 inpainter   ``auto``                            ``vcicn`` when the package ships its weights, else ``opencv``
 inpainter   ``vcicn[:PATH]``                    :class:`~splatsearch.search.completion.VCICNInpainter`
@@ -59,7 +60,11 @@ DETECTOR_HELP = ("goal-class detector: 'sim' (the simulator's ground-truth masks
                  "'yolo:PATH[,sam=PATH][,conf=0.35][,min_pixels=150][,imgsz=640][,max_det=300][,device=cpu]' (an ultralytics "
                  "YOLO .pt/.onnx file; a box-only model with sam=PATH gets SAM/MobileSAM masks)")
 MATCHER_HELP = ("goal-image matcher: 'sift[,contrast_threshold=0.04][,ratio=0.75]' (OpenCV SIFT + RANSAC; "
-                "default) or 'loftr:PATH[,conf_thresh=0.5][,max_side=640][,device=cpu]' (a kornia LoFTR "
+                "default), 'rootsift' / 'akaze' (RootSIFT or AKAZE, ratio test + mutual nearest neighbours + "
+                "RANSAC), 'sift-essential' (SIFT + ratio test + essential-matrix RANSAC with the known "
+                "intrinsics), 'features[,detector=sift|rootsift|akaze][,mutual=true][,gms=false][,colour_tol=none]"
+                "[,model=fundamental|homography|essential|none][,min_inlier_ratio=0]' (every option; "
+                "docs/matching.md) or 'loftr:PATH[,conf_thresh=0.5][,max_side=640][,device=cpu]' (a kornia LoFTR "
                 "checkpoint)")
 INPAINTER_HELP = ("novel-view completion: 'auto' (default: the VCICN with the weights shipped in the package, "
                   "or OpenCV when none are shipped), 'vcicn[:FILE.npz]' (the multi-view completion network; "
@@ -210,9 +215,30 @@ def _loftr_matcher(path, renders=False, **opts):
     return LoFTRMatcher(path, **opts)
 
 
+def _preset_matcher(preset):
+    def build(renders=False, **opts):
+        from splatsearch.search.matching import MATCHER_PRESETS, RENDER_CONTRAST_THRESHOLD, LocalFeatureMatcher
+
+        kw = dict(MATCHER_PRESETS.get(preset, {}))
+        # camera images keep OpenCV's SIFT contrast threshold, renders the lower one (see SIFTMatcher)
+        kw.setdefault("contrast_threshold", RENDER_CONTRAST_THRESHOLD if renders else 0.04)
+        kw.update(opts)
+        return LocalFeatureMatcher(**kw)
+
+    return build
+
+
 _SIFT_OPTS = ("ratio", "ransac_thresh", "min_matches", "model", "n_features", "contrast_threshold")
+_LOCAL_OPTS = ("detector", "ratio", "mutual", "gms", "colour_tol", "model", "ransac_thresh", "min_matches",
+               "min_inlier_ratio", "contrast_threshold", "akaze_threshold", "n_features", "hfov_deg", "colour_radius",
+               "gms_grid", "gms_alpha")
 _MATCHERS = {
     "sift": _Kind(_sift_matcher, False, _SIFT_OPTS),
+    # LocalFeatureMatcher: 'features' takes every option, the others are its named presets
+    "features": _Kind(_preset_matcher("features"), False, _LOCAL_OPTS),
+    "rootsift": _Kind(_preset_matcher("rootsift"), False, _LOCAL_OPTS),
+    "akaze": _Kind(_preset_matcher("akaze"), False, _LOCAL_OPTS),
+    "sift-essential": _Kind(_preset_matcher("sift-essential"), False, _LOCAL_OPTS),
     "loftr": _Kind(_loftr_matcher, True, ("conf_thresh", "max_side", "ransac_thresh", "model", "min_matches",
                                           "device")),
 }

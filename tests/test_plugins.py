@@ -127,7 +127,7 @@ def test_model_kinds_build_lazily_from_local_files(tmp_path):
     (make_detector, "sim:/x.pt", ValueError, "takes no path"),
     (make_detector, "sim,conf=0.3", ValueError, r"unknown option\(s\) \['conf'\].*allowed: min_pixels"),
     (make_detector, "yolo:/nonexistent/yolo.pt", FileNotFoundError, "never downloaded"),
-    (make_matcher, "superglue", ValueError, "known: loftr, sift"),
+    (make_matcher, "superglue", ValueError, "known: akaze, features, loftr, rootsift, sift, sift-essential"),
     (make_matcher, "loftr", ValueError, "needs a local path"),
     (make_matcher, "loftr:/nonexistent/loftr.ckpt", FileNotFoundError, "file not found"),
     (make_matcher, "sift,sam=/x", ValueError, "unknown option"),

@@ -1,0 +1,302 @@
+"""Store the NVSM views of look-alike-house episodes, for matcher and completion studies (issue 23).
+
+    python benchmarks/nvsm_views.py --set dev  --episodes 8 --out runs/nvsm_views/dev
+    python benchmarks/nvsm_views.py --set eval --episodes 8 --out runs/nvsm_views/eval
+
+Each episode runs the SplatSearch agent (variant ``splatsearch``, identifying by feature matches
+alone: ``colour_cue=False``, as ``splatsearch eval --identical-furniture --no-appearance``) in a
+house built with ``identical_furniture=True``, and records every NVSM run
+(:meth:`splatsearch.agent.Verifier.verify`): the object-local map's raw renders (the flat grey
+background already filled, as the matcher sees them), their opacity, the interior hole masks the
+completion step fills, the background masks, the cameras, and the OpenCV-inpainted views.
+Same-class objects the agent observed but never ran the NVSM on (it stops once it reaches what it
+takes for the goal) are then verified the same way (their stored observations, ``build_local_map``
+and ``verify_object``, through the agent's own ``Verifier.verify``), so that every episode has
+look-alikes with views.
+
+Sets: ``dev`` samples val-hard episodes in houses ``--first-house`` onward (seeds < 1000, for
+tuning); ``eval`` takes the episodes of ``splatsearch eval --split val-hard --seed 0
+--identical-furniture`` (houses 1000+, never tuned on) in their order. Episodes whose goal has no
+other instance of its class in the house are skipped (nothing to separate it from); the skipped
+ids are listed in ``OUT/manifest.json``.
+
+One ``OUT/ep_<house>_<id>.npz`` per episode, written atomically; an episode whose file exists is
+not run again (resumable). Arrays (V = all views of all runs, R = runs):
+
+=====================  =================  ==================================================
+key                    shape / dtype      meaning
+=====================  =================  ==================================================
+goal                   (Hg, Wg, 3) uint8  the goal image
+K                      (3, 3) float64     NVSM camera intrinsics (pixels); width, height
+rendered               (V, H, W, 3) uint8 raw renders (background filled grey)
+alpha                  (V, H, W) uint8    accumulated opacity x 255
+holes                  (V, H, W) bool     interior holes (what an inpainter fills)
+background             (V, H, W) bool     region outside the object's box, filled flat
+opencv                 (V, H, W, 3) uint8 ``OpenCVInpainter()`` of rendered / holes
+viewmats               (V, 4, 4) float64  world-to-camera of each view
+view_run               (V,) int64         run index of each view
+run_entry              (R,) int64         object-DB entry id
+run_instance           (R,) int64         simulator instance it maps to (nearest of its class)
+run_instance_dist      (R,) float64       metres from the entry centroid to that instance
+run_is_goal            (R,) bool          the instance is the episode's goal
+run_source             (R,) str           "agent" (during the search) or "supplement"
+run_agent_counts_max   (R,) int64         the agent's own e_max of that run (its matcher)
+episode                () str             the episode as JSON; meta: () str JSON of settings
+=====================  =================  ==================================================
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+#: views of a run are stored at this alpha quantisation (1/255)
+_U8 = 255.0
+
+
+def _u8(img: np.ndarray) -> np.ndarray:
+    """float [0, 1] -> uint8 with the rounding the matchers use (so counts do not change)."""
+    return (np.clip(np.asarray(img, np.float32), 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def dev_episodes(n: int, first_house: int = 0, per_house: int = 5, seed: int = 0) -> list:
+    """``n`` val-hard episodes in look-alike houses ``first_house, first_house + 1, ...`` (all
+    < :data:`splatsearch.evaluation.EVAL_SEED_BASE`), sampled as the evaluation samples its own."""
+    from splatsearch import sim
+    from splatsearch.evaluation import EVAL_SEED_BASE
+
+    eps = []
+    hs = first_house
+    while len(eps) < n:
+        if hs >= EVAL_SEED_BASE:
+            raise ValueError(f"dev houses must stay below {EVAL_SEED_BASE}")
+        house = sim.make_house(hs, identical_furniture=True)
+        for e in sim.make_episodes(house, min(per_house, n - len(eps)), "val-hard", seed=seed, env=sim.HouseEnv(house)):
+            e.episode_id = len(eps)
+            eps.append(e)
+        hs += 1
+    return eps
+
+
+def eval_episodes(n: int, seed: int = 0) -> list:
+    """The first ``n`` episodes of ``splatsearch eval --split val-hard --seed SEED --identical-furniture``."""
+    from splatsearch.evaluation import make_eval_episodes
+
+    return make_eval_episodes("val-hard", n, seed, identical_furniture=True)
+
+
+def has_lookalike(house, ep) -> bool:
+    """Whether the house holds another instance of the goal's class."""
+    return sum(o.class_name == ep.goal_class for o in house.objects) >= 2
+
+
+def _nearest_instance(house, label: str, centroid) -> tuple[int, float]:
+    objs = [o for o in house.objects if o.class_name == label]
+    if not objs:
+        return -1, float("inf")
+    d = [float(np.linalg.norm(np.asarray(o.center[:2]) - np.asarray(centroid)[:2])) for o in objs]
+    i = int(np.argmin(d))
+    return int(objs[i].instance_id), d[i]
+
+
+@contextlib.contextmanager
+def recording_nvsm(runs: list, source: list):
+    """Record every :meth:`Verifier.verify` that returns a result into ``runs`` (dicts with the
+    entry, its centroid and label, the result, the renders' opacity and ``source[0]``).
+
+    Patches ``Verifier.verify`` and the ``render_novel_views`` that ``verify_object`` calls, in
+    this process only and only inside the ``with`` block (the renders' opacity is not part of
+    the NVSM's result)."""
+    from splatsearch.agent import verification
+    from splatsearch.search import object_search
+
+    orig_verify, orig_render = verification.Verifier.verify, object_search.render_novel_views
+    last_alpha: list = [None]
+
+    def render(*a, **k):
+        rgb, alpha = orig_render(*a, **k)
+        last_alpha[0] = np.array(alpha, np.float32)
+        return rgb, alpha
+
+    def verify(self, db, entry_id, observations, occupancy=None):
+        last_alpha[0] = None
+        score = orig_verify(self, db, entry_id, observations, occupancy)
+        if score is not None:
+            e = db[entry_id]
+            runs.append({"entry": int(entry_id), "label": e.label, "centroid": np.array(e.centroid, float),
+                         "score": score, "alpha": last_alpha[0], "source": source[0],
+                         "alpha_tau": float(self.nvsm_config.alpha_tau)})
+        return score
+
+    verification.Verifier.verify, object_search.render_novel_views = verify, render
+    try:
+        yield
+    finally:
+        verification.Verifier.verify, object_search.render_novel_views = orig_verify, orig_render
+
+
+def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: bool = True) -> dict:
+    """Run ``ep`` with the agent, record its NVSM runs (and those of the same-class objects it
+    observed but never verified) and write them to ``path`` (.npz, atomically). Returns a small
+    summary dict (runs, objects, seconds)."""
+    from splatsearch.agent import AgentConfig
+    from splatsearch.episode import run_episode
+    from splatsearch.io import atomic_write_bytes
+    from splatsearch.search.inpainting import OpenCVInpainter
+    from splatsearch.sim.env import HouseEnv
+    from splatsearch.sim.episodes import goal_image, house_for_episode
+
+    t0 = time.perf_counter()
+    env = HouseEnv(house_for_episode(ep), width=ep.goal_width, height=ep.goal_height)
+    cfg = AgentConfig(variant="splatsearch", colour_cue=False)
+    runs: list = []
+    source = ["agent"]
+    holder: dict = {}
+
+    def on_step(agent, _obs, _info):
+        holder["agent"] = agent
+
+    with recording_nvsm(runs, source):
+        res = run_episode(ep, cfg, env=env, on_step=on_step, max_steps=max_steps)
+        agent = holder.get("agent")
+        if supplement and agent is not None:
+            source[0] = "supplement"
+            done = {r["entry"] for r in runs}
+            for e in list(agent.db):
+                if e.id not in done and agent.perception.observations[e.id]:
+                    agent.verifier.verify(agent.db, e.id, agent.perception.observations, agent.explorer.occupancy)
+    t_agent = time.perf_counter() - t0
+    goal = goal_image(env, ep).rgb
+    inp = OpenCVInpainter()
+    arrays: dict[str, list] = {k: [] for k in ("rendered", "alpha", "holes", "background", "opencv", "viewmats",
+                                               "view_run")}
+    meta_runs: dict[str, list] = {k: [] for k in ("entry", "instance", "instance_dist", "is_goal", "source",
+                                                  "agent_counts_max")}
+    for i, r in enumerate(runs):
+        s = r["score"]
+        rendered = np.asarray(s.rendered, np.float32)
+        holes = np.asarray(s.holes, bool)
+        alpha = r["alpha"] if r["alpha"] is not None else np.where(holes, 0.0, 1.0)
+        arrays["rendered"].append(_u8(rendered))
+        arrays["alpha"].append(_u8(alpha))
+        arrays["holes"].append(holes)
+        arrays["background"].append((alpha < r["alpha_tau"]) & ~holes)
+        arrays["opencv"].append(_u8(inp.inpaint(rendered, holes)))
+        arrays["viewmats"].append(np.asarray(s.viewmats, np.float64))
+        arrays["view_run"].append(np.full(len(rendered), i, np.int64))
+        inst, dist = _nearest_instance(env.house, r["label"], r["centroid"])
+        meta_runs["entry"].append(r["entry"])
+        meta_runs["instance"].append(inst)
+        meta_runs["instance_dist"].append(dist)
+        meta_runs["is_goal"].append(inst == ep.goal_instance_id)
+        meta_runs["source"].append(r["source"])
+        meta_runs["agent_counts_max"].append(int(s.e_max))
+    H, W = ep.goal_height, ep.goal_width
+    empty = {"rendered": (0, H, W, 3), "alpha": (0, H, W), "holes": (0, H, W), "background": (0, H, W),
+             "opencv": (0, H, W, 3), "viewmats": (0, 4, 4), "view_run": (0,)}
+    dtypes = {"rendered": np.uint8, "alpha": np.uint8, "holes": bool, "background": bool, "opencv": np.uint8,
+              "viewmats": np.float64, "view_run": np.int64}
+    out = {k: (np.concatenate(v) if v else np.zeros(empty[k], dtypes[k])) for k, v in arrays.items()}
+    out.update({f"run_{k}": np.asarray(v) for k, v in meta_runs.items()})
+    out["run_source"] = np.asarray(meta_runs["source"], dtype="<U10")
+    for k in ("entry", "instance", "agent_counts_max"):
+        out[f"run_{k}"] = np.asarray(meta_runs[k], np.int64)
+    out["run_instance_dist"] = np.asarray(meta_runs["instance_dist"], np.float64)
+    out["run_is_goal"] = np.asarray(meta_runs["is_goal"], bool)
+    out["goal"] = _u8(goal)
+    out["K"], out["width"], out["height"] = np.asarray(env.K, np.float64), np.int64(W), np.int64(H)
+    out["episode"] = np.asarray(json.dumps(ep.to_json()))
+    summary = {"episode_id": ep.episode_id, "house_seed": ep.house_seed, "goal_instance": ep.goal_instance_id,
+               "goal_class": ep.goal_class, "success": bool(res.success), "steps": int(res.steps),
+               "runs": len(runs), "agent_runs": int(sum(s == "agent" for s in meta_runs["source"])),
+               "instances": sorted(set(meta_runs["instance"])), "goal_verified": bool(any(meta_runs["is_goal"])),
+               "agent_s": round(t_agent, 1), "max_steps": max_steps,
+               "agent_inpainter": type(agent.verifier.inpainter).__name__ if agent is not None else None,
+               "agent_nvsm_matcher": type(agent.verifier.nvsm_matcher).__name__ if agent is not None else None}
+    out["meta"] = np.asarray(json.dumps(summary))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **out)
+    atomic_write_bytes(path, buf.getvalue())
+    summary["total_s"] = round(time.perf_counter() - t0, 1)
+    summary["mb"] = round(len(buf.getvalue()) / 2**20, 2)
+    return summary
+
+
+def episode_path(out: str, ep) -> str:
+    return os.path.join(out, f"ep_{ep.house_seed:04d}_{ep.episode_id:03d}.npz")
+
+
+def load_views(path: str) -> dict:
+    """One episode file as a dict of arrays (``episode`` and ``meta`` parsed from JSON)."""
+    with np.load(path, allow_pickle=False) as z:
+        d = {k: z[k] for k in z.files}
+    d["episode"] = json.loads(str(d["episode"]))
+    d["meta"] = json.loads(str(d["meta"]))
+    return d
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--set", choices=("dev", "eval"), required=True,
+                    help="dev: houses --first-house.. (< 1000, for tuning); eval: the evaluation episodes "
+                         "(houses 1000+, never tuned on)")
+    ap.add_argument("--episodes", type=int, default=8,
+                    help="episodes to store, counting only those whose goal has a look-alike (default 8)")
+    ap.add_argument("--pool", type=int, default=100,
+                    help="episodes sampled to pick them from, in order (default 100, as the issue's eval)")
+    ap.add_argument("--first-house", type=int, default=0, help="dev only: first house seed (default 0)")
+    ap.add_argument("--seed", type=int, default=0, help="episode sampling seed (default 0, as the eval)")
+    ap.add_argument("--max-steps", type=int, default=None,
+                    help="step cap per episode (default: the episode's own, 1000)")
+    ap.add_argument("--out", required=True, help="output directory (one .npz per episode, resumable)")
+    args = ap.parse_args(argv)
+    if args.episodes < 1 or args.pool < 1:
+        ap.error("--episodes and --pool must be >= 1")
+    import warp as wp
+
+    wp.config.quiet = True
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from splatsearch.io import atomic_write_bytes
+    from splatsearch.sim.episodes import house_for_episode
+
+    pool = eval_episodes(args.pool, args.seed) if args.set == "eval" else dev_episodes(args.pool, args.first_house,
+                                                                                      seed=args.seed)
+    chosen, skipped = [], []
+    for ep in pool:
+        if len(chosen) >= args.episodes:
+            break
+        (chosen if has_lookalike(house_for_episode(ep), ep) else skipped).append(ep)
+    os.makedirs(args.out, exist_ok=True)
+    man_path = os.path.join(args.out, "manifest.json")
+    manifest = {"set": args.set, "seed": args.seed, "first_house": args.first_house, "max_steps": args.max_steps,
+                "episodes": {}, "skipped_no_lookalike": [(e.house_seed, e.episode_id) for e in skipped]}
+    if os.path.exists(man_path):
+        with open(man_path) as f:
+            manifest["episodes"] = json.load(f).get("episodes", {})
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  transient=False) as prog:
+        task = prog.add_task(f"NVSM views ({args.set})", total=len(chosen))
+        for ep in chosen:
+            path = episode_path(args.out, ep)
+            if not os.path.exists(path):
+                load0 = os.getloadavg()[0]
+                s = dump_episode(ep, path, max_steps=args.max_steps)
+                s["load1"] = round(load0, 2)
+                manifest["episodes"][os.path.basename(path)] = s
+                atomic_write_bytes(man_path, json.dumps(manifest, indent=1).encode())
+                prog.console.print(json.dumps(s))
+            prog.advance(task)
+    atomic_write_bytes(man_path, json.dumps(manifest, indent=1).encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
