@@ -80,6 +80,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="dev house seed (default 0; never >= 1000)")
     p.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
+    p.add_argument("--rgbd-odometry", action="store_true", help="start tracking from OpenCV RGB-D odometry")
     p.add_argument("--runs", default=None, help="comma-separated subset of the runs (default: all)")
     p.add_argument("--iters", type=int, default=None, help="TUM mapping steps per frame (default 30)")
     p.add_argument("--first-iters", type=int, default=None, help="TUM mapping steps on the first frame (default 60)")
@@ -88,7 +89,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.seed >= 1000:
         p.error("seeds >= 1000 are evaluation houses: never tuned on")
-    tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale)
+    tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry)
     global REAL_REFINE
     for key, val in (("iters", a.iters), ("first_iters", a.first_iters)):
         if val is not None:

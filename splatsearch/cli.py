@@ -134,7 +134,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
     from splatsearch.cli_config import apply_overrides, config_overrides
 
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
-    tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale)
+    tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale,
+                         rgbd_odometry=args.track_rgbd_odometry)
     if args.track_from_gt and not args.track:
         raise ValueError("--track-from-gt refines poses by tracking: give --track too")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
@@ -438,6 +439,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--keyframe-every", type=int, default=5,
                    help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
     m.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
+    m.add_argument("--track-rgbd-odometry", action="store_true",
+                   help="with --track: start each frame's tracking from OpenCV's RGB-D odometry between a "
+                        "render of the map and the frame (one render, a few ms), then run --track-iters "
+                        "Adam steps (default: off)")
     m.add_argument("--track-downscale", type=int, default=1,
                    help="track on images this many times smaller (faster; default 1)")
     m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel (default 3)")

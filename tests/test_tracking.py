@@ -38,6 +38,24 @@ def test_tracking_recovers_a_perturbed_pose(fitted):
     assert d < 0.005 and ang < np.radians(0.3), (d0, ang0, d, ang)  # a few mm, a fraction of a degree
 
 
+def test_rgbd_odometry_start_recovers_a_perturbed_pose(fitted):
+    from splatsearch.gaussians import render_args
+    from splatsearch.slam import odometry_init
+
+    m, f = fitted
+    xi = jnp.array([0.01, -0.012, 0.008, 0.012, -0.01, 0.012])
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), xi))
+    ang0, d0 = pose_distance(noisy, f.viewmat)
+    margs = render_args(m.map.params(), m.map.active, m.map.isotropic)
+    vm = odometry_init(margs, f.rgb, f.depth, noisy, m.K, m.W, m.H)
+    assert vm is not None
+    ang, d = pose_distance(vm, f.viewmat)
+    assert d < 0.5 * d0 and ang < 0.5 * ang0, (d0, ang0, d, ang)
+    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=10, rgbd_odometry=True)
+    ang, d = pose_distance(r.viewmat, f.viewmat)
+    assert r.status == "ok" and d < 0.005 and ang < np.radians(0.3), (d0, ang0, d, ang)
+
+
 def test_diverging_or_nan_tracking_is_detected(fitted):
     m, f = fitted
     noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), jnp.array([0, 0, 0, 0.01, 0, 0.0])))
