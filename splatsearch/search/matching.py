@@ -99,6 +99,18 @@ def ransac_inliers(pts_a: np.ndarray, pts_b: np.ndarray, model: str = "fundament
     return int(np.count_nonzero(inl))
 
 
+
+def _cached_goal_features(cache: dict, goal: np.ndarray, features):
+    """``features(goal)`` through a per-matcher cache of the 8 latest goals, keyed by a hash of
+    the image bytes, shape and dtype (the same goal is matched against every novel view)."""
+    key = hashlib.blake2b(np.ascontiguousarray(goal).view(np.uint8), digest_size=16).digest() + str(
+        (goal.shape, goal.dtype)).encode()
+    if key not in cache:
+        if len(cache) >= 8:
+            cache.pop(next(iter(cache)))
+        cache[key] = features(goal)
+    return cache[key]
+
 class SIFTMatcher:
     """SIFT + Lowe's ratio test + RANSAC inlier count.
 
@@ -151,13 +163,7 @@ class SIFTMatcher:
         return pts, desc
 
     def _goal_features(self, goal: np.ndarray):
-        key = hashlib.blake2b(np.ascontiguousarray(goal).view(np.uint8), digest_size=16).digest() + str(
-            (goal.shape, goal.dtype)).encode()
-        if key not in self._cache:
-            if len(self._cache) >= 8:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = self.features(goal)
-        return self._cache[key]
+        return _cached_goal_features(self._cache, goal, self.features)
 
     def matches(self, goal: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ratio-test matches as pixel coordinates (pts_goal (M, 2), pts_image (M, 2))."""
@@ -486,13 +492,7 @@ class LocalFeatureMatcher:
         return pts, desc
 
     def _goal_features(self, goal: np.ndarray):
-        key = hashlib.blake2b(np.ascontiguousarray(goal).view(np.uint8), digest_size=16).digest() + str(
-            (goal.shape, goal.dtype)).encode()
-        if key not in self._cache:
-            if len(self._cache) >= 8:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = self.features(goal)
-        return self._cache[key]
+        return _cached_goal_features(self._cache, goal, self.features)
 
     def matches(self, goal: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered matches as pixel coordinates (pts_goal (M, 2), pts_image (M, 2)): nearest
