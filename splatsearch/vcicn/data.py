@@ -47,6 +47,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from splatsearch.agent.config import AgentConfig
+
 #: evaluation houses start at splatsearch.evaluation.EVAL_SEED_BASE; training seeds stay below this
 TRAIN_SEED_LIMIT = 500
 
@@ -71,16 +73,17 @@ class DataConfig:
     width: int = 320
     height: int = 240
     store_scale: int = 2
-    n_views: int = 12
-    view_radius: float = 1.5
-    view_elevations_deg: tuple = (20.0, 45.0)
+    # the NVSM's own camera settings, so training views match what the agent renders
+    n_views: int = AgentConfig.n_views
+    view_radius: float = AgentConfig.view_radius
+    view_elevations_deg: tuple = AgentConfig.view_elevations_deg
     goal_views: int = 2
     max_objects: int = 4
     min_obs: int = 1
     max_obs: int = 5
     obs_min_px: int = 400
     view_min_px: int = 200
-    alpha_tau: float = 0.5
+    alpha_tau: float = AgentConfig.inpaint_tau
 
     @property
     def views_per_object(self) -> int:
