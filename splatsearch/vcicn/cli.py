@@ -51,14 +51,15 @@ def add_parser(sub) -> None:
     t.add_argument("--max-minutes", type=_positive_float, default=60.0,
                    help="wall-time budget in minutes; training stops (keeping the best checkpoint) when it is "
                         "spent (default: 60)")
-    t.add_argument("--steps", type=_positive_int, default=20000, help="optimiser steps at most (default: 20000)")
+    t.add_argument("--steps", type=_positive_int, default=6000,
+                   help="optimiser steps; the cosine learning-rate decay ends here (default: 6000)")
     t.add_argument("--batch", type=_positive_int, default=2, help="objects per step (default: 2)")
     t.add_argument("--lr", type=_positive_float, default=2e-3, help="peak learning rate (default: 2e-3)")
     t.add_argument("--size", default="64x48", help="training resolution WxH in pixels, both divisible by 8 "
                                                    "(default: 64x48)")
     t.add_argument("--width", type=_positive_int, default=16, help="channels of the first U-Net level, a multiple of 8 (default: 16)")
-    t.add_argument("--eval-every", type=_positive_int, default=200,
-                   help="steps between validation passes and checkpoints (default: 200)")
+    t.add_argument("--eval-every", type=_positive_int, default=400,
+                   help="steps between validation passes and checkpoints (default: 400)")
     t.add_argument("--patience", type=_positive_int, default=6,
                    help="validation passes without improvement before stopping early (default: 6)")
     t.add_argument("--val-houses", default=None,

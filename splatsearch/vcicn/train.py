@@ -45,13 +45,13 @@ class TrainConfig:
     budget in minutes, seed, validation houses as a ``parse_houses`` string or None for the seeds
     ending in 9, camera-dropout probability, hole threshold on the stored 8-bit alpha)."""
 
-    steps: int = 20000
+    steps: int = 6000
     batch: int = 2
     lr: float = 2e-3
     width: int = 64
     height: int = 48
     features: int = 16
-    eval_every: int = 200
+    eval_every: int = 400
     patience: int = 6
     max_minutes: float = 60.0
     seed: int = 0
