@@ -95,26 +95,39 @@ def main() -> None:
             n_scr = (wp.empty(nt * 256), wp.empty(nt * 256), wp.empty(nt * 256, dtype=wp.int32),
                      wp.empty(nt * 256 * C), wp.empty(nt * 16, dtype=wp.vec2i))
             n_bscr = (wp.empty(nt * 256 * new_c.bwd_scratch_fields(C)), wp.empty(nt * 256, dtype=wp.int32),
-                      wp.empty(nt * (8 + C)), wp.empty(nt * 16, dtype=wp.int32))
+                      wp.empty(nt * 16 * (7 + C)), wp.empty(nt * (7 + C)), wp.empty(nt * 16, dtype=wp.int32))
             geo = [ranges, ids, means2d, conics, opac]
 
+            def simd_style(k) -> bool:  # this checkout's signature (flat colours, per-tile scratch)
+                return "colf" in [arg.label for arg in k.adj.args]
+
+            def launch_f(k, out):
+                if simd_style(k):
+                    wp.launch(k, dim=nt, inputs=geo + [colf, depths, W, H, tx, 0, *n_scr], outputs=list(out))
+                else:
+                    wp.launch(k, dim=nt, inputs=geo + [colors, depths, W, H, 16, tx, 0, *o_scr], outputs=list(out))
+
+            def launch_b(k, out, g):
+                for a in g:
+                    a.zero_()
+                if simd_style(k):
+                    wp.launch(k, dim=nt, inputs=geo + [colf, depths, W, H, tx, 0, out[2], out[3], v_color, v_depth,
+                                                       v_alpha, *n_bscr], outputs=list(g))
+                else:
+                    wp.launch(k, dim=nt, inputs=geo + [colors, depths, W, H, 16, tx, 0, out[2], out[3], v_color,
+                                                       v_depth, v_alpha, *o_bscr], outputs=list(g))
+
             def old_f():
-                wp.launch(ofwd, dim=nt, inputs=geo + [colors, depths, W, H, 16, tx, 0, *o_scr], outputs=list(o_out))
+                launch_f(ofwd, o_out)
 
             def new_f():
-                wp.launch(nfwd, dim=nt, inputs=geo + [colf, depths, W, H, tx, 0, *n_scr], outputs=list(n_out))
+                launch_f(nfwd, n_out)
 
             def old_b():
-                for a in o_g:
-                    a.zero_()
-                wp.launch(obwd, dim=nt, inputs=geo + [colors, depths, W, H, 16, tx, 0, o_out[2], o_out[3], v_color,
-                                                      v_depth, v_alpha, *o_bscr], outputs=list(o_g))
+                launch_b(obwd, o_out, o_g)
 
             def new_b():
-                for a in n_g:
-                    a.zero_()
-                wp.launch(nbwd, dim=nt, inputs=geo + [colf, depths, W, H, tx, 0, n_out[2], n_out[3], v_color,
-                                                      v_depth, v_alpha, *n_bscr], outputs=list(n_g))
+                launch_b(nbwd, n_out, n_g)
 
             for f in (old_f, new_f, old_b, new_b):
                 f()

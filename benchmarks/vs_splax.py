@@ -56,6 +56,14 @@ def splax_worker(npz: str, repeats: int, render_depth: bool = True) -> None:
     # the CPU ("JaxCallableGraphMode.WARP is not supported for JAX CPU FFI calls"); graph capture
     # is a CUDA launch optimisation, so on the CPU the same kernels run with plain launches.
     if jax.default_backend() == "cpu":
+        # splax's kernels are cooperative tile kernels (launch_tiled, block_dim 256, shared-memory
+        # batches of Gaussians loaded by the block's threads). Warp's CPU default resolves every
+        # block_dim to 1 (``wp.config.enable_cpu_blocks = False``): then only thread 0 of each
+        # 16x16 tile runs, so only one pixel per tile is rendered and the shared batches hold one
+        # loaded Gaussian and uninitialised records (the near-black images and the crashes of the
+        # depth backward seen before). Warp >= 1.19 runs CPU blocks of 2-1024 threads as
+        # cooperative fibers when asked to.
+        wp.config.enable_cpu_blocks = True
         _jax_callable = wp.jax_callable
 
         def _cpu_jax_callable(*a, **kw):

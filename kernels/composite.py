@@ -19,7 +19,7 @@ import functools
 
 import warp as wp
 
-from .native import bwd_row, exp_neg, fwd_row
+from .native import bwd_row, exp_neg, fwd_row, lane_sums
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 #: slack on the log-cutoff so that float rounding never skips a pixel whose alpha reaches 1/255
@@ -349,7 +349,7 @@ def composite_tile_kernels(C: int):
     """
     vecC = wp.types.vector(length=C, dtype=wp.float32)
     NF = bwd_scratch_fields(C)
-    NG = 8 + C
+    NG = 7 + C
 
     @wp.kernel(module="unique", enable_backward=False)
     def composite_fwd_tile(
@@ -462,6 +462,7 @@ def composite_tile_kernels(C: int):
         bs: wp.array(dtype=float),
         bl: wp.array(dtype=wp.int32),
         gs: wp.array(dtype=float),
+        gout: wp.array(dtype=float),
         row_last: wp.array(dtype=wp.int32),
         v_means2d: wp.array(dtype=wp.vec2),
         v_conics: wp.array(dtype=wp.vec3),
@@ -478,38 +479,39 @@ def composite_tile_kernels(C: int):
         start = ranges[t, 0]
         tb = t * 256
         fb = t * NF * 256
+        for q in range(16 * NG):
+            gs[t * NG * 16 + q] = 0.0
+        for r in range(y1 - y0):
+            row_last[t * 16 + r] = start - 1
         jmax = start - 1
-        for r in range(16):
-            rl = start - 1
-            py = y0 + r
-            for k in range(16):
-                q = 16 * r + k
-                px = x0 + k
-                if py < y1 and px < x1:
-                    pix = py * width + px
-                    Tf = out_T[pix]
-                    bs[fb + q] = Tf
-                    bs[fb + 256 + q] = Tf
-                    bs[fb + 3 * 256 + q] = v_depth[pix]
-                    bs[fb + 4 * 256 + q] = v_alpha[pix]
-                    vc = v_color[pix]
-                    for ch in range(C):
-                        bs[fb + (5 + C + ch) * 256 + q] = vc[ch]
-                    bl[tb + q] = out_last[pix]
-                    rl = wp.max(rl, out_last[pix])
-                else:
-                    bs[fb + q] = 1.0
-                    bs[fb + 256 + q] = 1.0
-                    bs[fb + 3 * 256 + q] = 0.0
-                    bs[fb + 4 * 256 + q] = 0.0
-                    for ch in range(C):
-                        bs[fb + (5 + C + ch) * 256 + q] = 0.0
-                    bl[tb + q] = start - 1
-                bs[fb + 2 * 256 + q] = 0.0
+        for q in range(16 * (y1 - y0)):  # rows past the image are never visited
+            r = q // 16
+            k = q % 16
+            bs[fb + 2 * 256 + q] = 0.0
+            for ch in range(C):
+                bs[fb + (5 + ch) * 256 + q] = 0.0
+            if k < nk:
+                pix = (y0 + r) * width + x0 + k
+                Tf = out_T[pix]
+                bs[fb + q] = Tf
+                bs[fb + 256 + q] = Tf
+                bs[fb + 3 * 256 + q] = v_depth[pix]
+                bs[fb + 4 * 256 + q] = v_alpha[pix]
+                vc = v_color[pix]
                 for ch in range(C):
-                    bs[fb + (5 + ch) * 256 + q] = 0.0
-            row_last[t * 16 + r] = rl
-            jmax = wp.max(jmax, rl)
+                    bs[fb + (5 + C + ch) * 256 + q] = vc[ch]
+                lp = out_last[pix]
+                bl[tb + q] = lp
+                row_last[t * 16 + r] = wp.max(row_last[t * 16 + r], lp)
+                jmax = wp.max(jmax, lp)
+            else:
+                bs[fb + q] = 1.0
+                bs[fb + 256 + q] = 1.0
+                bs[fb + 3 * 256 + q] = 0.0
+                bs[fb + 4 * 256 + q] = 0.0
+                for ch in range(C):
+                    bs[fb + (5 + C + ch) * 256 + q] = 0.0
+                bl[tb + q] = start - 1
         for jj in range(jmax - start + 1):
             j = jmax - jj
             g = ids[j]
@@ -520,8 +522,6 @@ def composite_tile_kernels(C: int):
             tcut = cutoff(o)
             sh = ellipse_shape(cn, tcut)
             rows = shape_rows(m, sh, y0, y1)
-            for q in range(NG):
-                gs[t * NG + q] = 0.0
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):
                 r = py - y0
@@ -534,14 +534,15 @@ def composite_tile_kernels(C: int):
                 hit += bwd_row(bs, bl, gs, colf, C, NG, t, tb, r, x0, nk, m[0], dy, cn[0], cn[1], cn[2],
                                o, tcut, d, g, j)
             if hit != 0:
+                lane_sums(gs, gout, t, NG)
                 gb = t * NG
                 g_c = vecC()
                 for ch in range(C):
-                    g_c[ch] = gs[gb + ch]
+                    g_c[ch] = gout[gb + ch]
                 wp.atomic_add(v_colors, g, g_c)
-                wp.atomic_add(v_depths, g, gs[gb + C])
-                wp.atomic_add(v_conics, g, wp.vec3(gs[gb + C + 1], gs[gb + C + 2], gs[gb + C + 3]))
-                wp.atomic_add(v_means2d, g, wp.vec2(gs[gb + C + 4], gs[gb + C + 5]))
-                wp.atomic_add(v_opacities, g, gs[gb + C + 6])
+                wp.atomic_add(v_depths, g, gout[gb + C])
+                wp.atomic_add(v_conics, g, wp.vec3(gout[gb + C + 1], gout[gb + C + 2], gout[gb + C + 3]))
+                wp.atomic_add(v_means2d, g, wp.vec2(gout[gb + C + 4], gout[gb + C + 5]))
+                wp.atomic_add(v_opacities, g, gout[gb + C + 6])
 
     return composite_fwd_tile, composite_bwd_tile

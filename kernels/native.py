@@ -122,7 +122,8 @@ def fwd_row(sT: wp.array(dtype=float), sD: wp.array(dtype=float), sL: wp.array(d
 
 # Backward scratch fields per tile: 0 T (running, recovered back to front), 1 T_final, 2 bufd,
 # 3 v_depth, 4 v_alpha, 5 .. 5+C-1 buf, 5+C .. 5+2C-1 v_color; ints: the last index per lane.
-# Per-tile gradient sums (NG = 8 + C): C colour, depth, conic a, b, c, mean x, y, opacity, hits.
+# Per-tile gradient sums of the current Gaussian, 16 lanes each (NG = 7 + C quantities): C colour,
+# depth, conic a, b, c, mean x, y, opacity; :func:`lane_sums` reduces them once per Gaussian.
 _BWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
     const int NF = 5 + 2 * C;
     const int rb = 16 * r;
@@ -167,10 +168,8 @@ _BWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
             B[k] = vl[k] ? b + cv * f_[k] : b;
             gc[k] = vl[k] ? Vc[k] * f_[k] : 0.0f;
         }
-        for (int k = 0; k < 8; ++k) gc[k] = gc[k] + gc[k + 8];
-        for (int k = 0; k < 4; ++k) gc[k] = gc[k] + gc[k + 4];
-        gc[0] = gc[0] + gc[2]; gc[1] = gc[1] + gc[3];
-        gs.data[t * NG + ch] = gs.data[t * NG + ch] + (gc[0] + gc[1]);
+        float* A = gs.data + (t * NG + ch) * 16;
+        for (int k = 0; k < 16; ++k) A[k] = A[k] + gc[k];
     }
     for (int k = 0; k < 16; ++k) {
         float dx = dx_[k];
@@ -188,14 +187,14 @@ _BWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
         gm1[k] = vs ? v_sigma * (cn1 * dx + cn2 * dy) : 0.0f;
         go[k] = vs ? vis * v_a : 0.0f;
     }
-    float* acc[7] = {gd, gcn0, gcn1, gcn2, gm0, gm1, go};
-    for (int q = 0; q < 7; ++q) {
-        float* a = acc[q];
-        for (int k = 0; k < 8; ++k) a[k] = a[k] + a[k + 8];
-        for (int k = 0; k < 4; ++k) a[k] = a[k] + a[k + 4];
-        a[0] = a[0] + a[2]; a[1] = a[1] + a[3];
-        gs.data[t * NG + C + q] = gs.data[t * NG + C + q] + (a[0] + a[1]);
-    }
+    float* A = gs.data + (t * NG + C) * 16;
+    for (int k = 0; k < 16; ++k) A[k] = A[k] + gd[k];
+    for (int k = 0; k < 16; ++k) A[16 + k] = A[16 + k] + gcn0[k];
+    for (int k = 0; k < 16; ++k) A[32 + k] = A[32 + k] + gcn1[k];
+    for (int k = 0; k < 16; ++k) A[48 + k] = A[48 + k] + gcn2[k];
+    for (int k = 0; k < 16; ++k) A[64 + k] = A[64 + k] + gm0[k];
+    for (int k = 0; k < 16; ++k) A[80 + k] = A[80 + k] + gm1[k];
+    for (int k = 0; k < 16; ++k) A[96 + k] = A[96 + k] + go[k];
     return hits;
 }
 """
@@ -208,5 +207,25 @@ def bwd_row(bs: wp.array(dtype=float), bl: wp.array(dtype=wp.int32), gs: wp.arra
             g: int, j: int) -> int:
     """Adjoint of :func:`fwd_row` for Gaussian g (sorted index j) on row r of tile t, walking back
     to front: recovers T before g per lane, updates the suffix sums buf, and adds the row's
-    gradient sums into gs[t * NG:]; returns how many lanes g contributed to."""
+    per-lane gradient sums into gs[16 t NG:]; returns how many lanes g contributed to."""
+    ...
+
+
+_LANE_SUMS = r"""{
+    float* A = gs.data + t * NG * 16;
+    for (int q = 0; q < NG; ++q) {
+        float a[16];
+        for (int k = 0; k < 16; ++k) { a[k] = A[16 * q + k]; A[16 * q + k] = 0.0f; }
+        for (int k = 0; k < 8; ++k) a[k] = a[k] + a[k + 8];
+        for (int k = 0; k < 4; ++k) a[k] = a[k] + a[k + 4];
+        a[0] = a[0] + a[2]; a[1] = a[1] + a[3];
+        gout.data[t * NG + q] = a[0] + a[1];
+    }
+}
+"""
+
+
+@wp.func_native(_LANE_SUMS)
+def lane_sums(gs: wp.array(dtype=float), gout: wp.array(dtype=float), t: int, NG: int):
+    """gout[t NG + q] = the 16 lanes of gs's quantity q summed in a fixed tree order; zeroes gs's lanes."""
     ...

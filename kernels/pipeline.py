@@ -383,7 +383,8 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
             n_tiles = tiles_x * tiles_y
             bs = ws.get("tile_bwd", n_tiles * 256 * bwd_scratch_fields(C), wp.float32)
             bl = ws.get("tile_bwd_L", n_tiles * 256, wp.int32)
-            gs = ws.get("tile_gsum", n_tiles * (8 + C), wp.float32)
+            gs = ws.get("tile_gsum", n_tiles * 16 * (7 + C), wp.float32)
+            gout = ws.get("tile_gout", n_tiles * (7 + C), wp.float32)
             row_last = ws.get("row_last", n_tiles * 16, wp.int32)
             colf = _flat_floats(ws, colors, n, C)
 
@@ -391,7 +392,7 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
                 a = accs[w]
                 wp.launch(bwd, dim=t1 - t0,
                           inputs=[ranges, ids, means2d, conics, opacities, colf, depths, width, height,
-                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, bs, bl, gs, row_last],
+                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, bs, bl, gs, gout, row_last],
                           outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
