@@ -11,10 +11,14 @@ machine's load hits both; the table gives the median over rounds of each round's
 ratios splax / ours. Both jit the forward (RGB + depth) and forward + backward (value_and_grad of
 mean image + 0.1 mean depth + mean alpha w.r.t. every Gaussian parameter) and block on the result.
 The splax image is compared with ours; a row whose images differ by more than ``IMAGE_TOL``
-is marked INVALID. With Warp 1.19 on the CPU (this project's machine, December 2026) splax 0.2.3
-renders near-black colour images (its alpha is right) and its depth backward segfaults now and
-then, so no valid ratio could be measured there; the first run of the day is in
-docs/performance.md. Not part of the test suite (a run takes minutes).
+is marked INVALID. splax's kernels are cooperative tile kernels (256 threads per 16x16 tile
+sharing batches of Gaussians); on the CPU they need Warp >= 1.19 with
+``wp.config.enable_cpu_blocks = True`` (the worker sets it): Warp's CPU default runs one thread
+per block, which renders one pixel per tile from uninitialised batches (near-black images and
+crashes in the depth backward). Warp 1.14, the oldest splax 0.2.3 accepts, registers its JAX FFI
+targets for CUDA only ("No FFI handler registered ... on a platform Host"); 1.18 and 1.19 register
+CPU targets and have the same ``enable_cpu_blocks`` switch, off by default. Not part of the test
+suite (a run takes minutes).
 """
 
 from __future__ import annotations
