@@ -50,7 +50,7 @@ def _time(fn, repeats: int, warmup: int = 2) -> float:
     return float(np.median(ts))
 
 
-def splax_worker(npz: str, repeats: int, render_depth: bool = True) -> None:
+def splax_worker(npz: str, repeats: int, render_depth: bool = True, warmup: int = 2) -> None:
     """Runs inside the splax venv: time splax.render on the scene, print JSON seconds."""
     import jax
     import jax.numpy as jnp
@@ -96,8 +96,8 @@ def splax_worker(npz: str, repeats: int, render_depth: bool = True) -> None:
 
     f = jax.jit(fwd)
     fb = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4)))
-    t_f = _time(lambda: jax.block_until_ready(f(*args)), repeats)
-    t_fb = _time(lambda: jax.block_until_ready(fb(*args)), repeats)
+    t_f = _time(lambda: jax.block_until_ready(f(*args)), repeats, warmup)
+    t_fb = _time(lambda: jax.block_until_ready(fb(*args)), repeats, warmup)
     img, alpha = f(*args)
     np.save(npz + ".splax.npy", np.concatenate([np.asarray(img)[..., :3], np.asarray(alpha)[..., None]], -1))
     print(json.dumps({"fwd": t_f, "fwd_bwd": t_fb}))
@@ -119,16 +119,19 @@ def main() -> None:
     ap.add_argument("--scenes", default="profile,heavy", help="comma-separated: profile, heavy (default both)")
     ap.add_argument("--repeats", type=int, default=5, help="timed calls per pass and round (default 5)")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds ours/splax (default 2)")
+    ap.add_argument("--warmup", type=int, default=2,
+                    help="untimed calls before each timed pass, the first compiles (default 2; splax's CPU "
+                         "backward takes over a minute per call on (a))")
     ap.add_argument("--splax-venv", default=os.path.join(tempfile.gettempdir(), "splax-0.2.3-venv"),
                     help="throwaway venv holding splax 0.2.3, created if missing (default: $TMPDIR/splax-0.2.3-venv)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--worker-depth", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        splax_worker(args.worker, args.repeats, bool(args.worker_depth))
+        splax_worker(args.worker, args.repeats, bool(args.worker_depth), args.warmup)
         return
-    if args.repeats < 1 or args.rounds < 1:
-        ap.error("--repeats and --rounds must be >= 1")
+    if args.repeats < 1 or args.rounds < 1 or args.warmup < 1:
+        ap.error("--repeats, --rounds and --warmup must be >= 1")
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     import jax
 
@@ -152,10 +155,13 @@ def main() -> None:
             fwd, fwd_bwd, params = bench.make_render_fns(scene)
             ours_f, ours_fb, sp_f, sp_fb = [], [], [], []
             for _ in range(args.rounds):
-                ours_f.append(bench.time_call(lambda: jax.block_until_ready(fwd(*params)), args.repeats)[0])
-                ours_fb.append(bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats)[0])
+                ours_f.append(bench.time_call(lambda: jax.block_until_ready(fwd(*params)), args.repeats,
+                                              args.warmup)[0])
+                ours_fb.append(bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats,
+                                               args.warmup)[0])
                 for _attempt in range(3):  # splax's CPU backward segfaults now and then
-                    out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats)],
+                    out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats),
+                                          "--warmup", str(args.warmup)],
                                          capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
                     if out.returncode >= 0:
                         break
