@@ -50,7 +50,8 @@ def _time(fn, repeats: int, warmup: int = 2) -> float:
     return float(np.median(ts))
 
 
-def splax_worker(npz: str, repeats: int, render_depth: bool = True, warmup: int = 2) -> None:
+def splax_worker(npz: str, repeats: int, render_depth: bool = True, warmup: int = 2,
+                 backward: bool = True) -> None:
     """Runs inside the splax venv: time splax.render on the scene, print JSON seconds."""
     import jax
     import jax.numpy as jnp
@@ -97,7 +98,7 @@ def splax_worker(npz: str, repeats: int, render_depth: bool = True, warmup: int 
     f = jax.jit(fwd)
     fb = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4)))
     t_f = _time(lambda: jax.block_until_ready(f(*args)), repeats, warmup)
-    t_fb = _time(lambda: jax.block_until_ready(fb(*args)), repeats, warmup)
+    t_fb = _time(lambda: jax.block_until_ready(fb(*args)), repeats, warmup) if backward else float("nan")
     img, alpha = f(*args)
     np.save(npz + ".splax.npy", np.concatenate([np.asarray(img)[..., :3], np.asarray(alpha)[..., None]], -1))
     print(json.dumps({"fwd": t_f, "fwd_bwd": t_fb}))
@@ -124,11 +125,13 @@ def main() -> None:
                          "backward takes over a minute per call on (a))")
     ap.add_argument("--splax-venv", default=os.path.join(tempfile.gettempdir(), "splax-0.2.3-venv"),
                     help="throwaway venv holding splax 0.2.3, created if missing (default: $TMPDIR/splax-0.2.3-venv)")
+    ap.add_argument("--forward-only", action="store_true",
+                    help="time the forward only (splax's CPU backward is slow; the f+b columns read nan)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--worker-depth", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        splax_worker(args.worker, args.repeats, bool(args.worker_depth), args.warmup)
+        splax_worker(args.worker, args.repeats, bool(args.worker_depth), args.warmup, not args.forward_only)
         return
     if args.repeats < 1 or args.rounds < 1 or args.warmup < 1:
         ap.error("--repeats, --rounds and --warmup must be >= 1")
@@ -157,11 +160,13 @@ def main() -> None:
             for _ in range(args.rounds):
                 ours_f.append(bench.time_call(lambda: jax.block_until_ready(fwd(*params)), args.repeats,
                                               args.warmup)[0])
-                ours_fb.append(bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats,
+                ours_fb.append(float("nan") if args.forward_only else
+                               bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats,
                                                args.warmup)[0])
                 for _attempt in range(3):  # splax's CPU backward segfaults now and then
                     out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats),
-                                          "--warmup", str(args.warmup)],
+                                          "--warmup", str(args.warmup)]
+                                         + (["--forward-only"] if args.forward_only else []),
                                          capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
                     if out.returncode >= 0:
                         break

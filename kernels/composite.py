@@ -2,7 +2,9 @@
 
 Rules (gsplat 1.5 / Inria 3DGS): pixel centres at +0.5; ``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy``
 with ``d = mean2d - pixel``; ``alpha = min(0.999, o exp(-sigma))``; Gaussians with ``sigma < 0`` or
-``alpha < 1/255`` are skipped; compositing stops *before* a Gaussian that would make
+``alpha < 1/255`` are skipped (exp is :func:`.native.exp_neg`, a branch-free polynomial that the
+tile kernels vectorise; every kernel here uses it, so they all composite the same values);
+compositing stops *before* a Gaussian that would make
 ``T <= 1e-4``. The forward saves the final transmittance T and the index (into the sorted
 intersection list) of the last contributing Gaussian; the backward walks back from it and
 recovers T before each Gaussian by dividing by ``1 - alpha``.
@@ -328,8 +330,10 @@ def shape_cols(m: wp.vec2, sh: wp.vec4, dy: float, x0: int, x1: int) -> wp.vec2i
 
 #: lanes of the tile kernels' rows: the tile size they require
 TILE_LANES = 16
-#: per-tile float fields of the backward scratch (see :mod:`.native`), for C channels
+
+
 def bwd_scratch_fields(C: int) -> int:
+    """Per-pixel float fields of the tile backward's scratch for C channels (see :mod:`.native`)."""
     return 5 + 2 * C
 
 
