@@ -163,7 +163,7 @@ def main() -> None:
                 ours_fb.append(float("nan") if args.forward_only else
                                bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats,
                                                args.warmup)[0])
-                for _attempt in range(3):  # splax's CPU backward segfaults now and then
+                for _attempt in range(3):  # a crashed worker is retried (it crashed without enable_cpu_blocks)
                     out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats),
                                           "--warmup", str(args.warmup)]
                                          + (["--forward-only"] if args.forward_only else []),
