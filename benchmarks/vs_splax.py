@@ -11,10 +11,14 @@ machine's load hits both; the table gives the median over rounds of each round's
 ratios splax / ours. Both jit the forward (RGB + depth) and forward + backward (value_and_grad of
 mean image + 0.1 mean depth + mean alpha w.r.t. every Gaussian parameter) and block on the result.
 The splax image is compared with ours; a row whose images differ by more than ``IMAGE_TOL``
-is marked INVALID. With Warp 1.19 on the CPU (this project's machine, December 2026) splax 0.2.3
-renders near-black colour images (its alpha is right) and its depth backward segfaults now and
-then, so no valid ratio could be measured there; the first run of the day is in
-docs/performance.md. Not part of the test suite (a run takes minutes).
+is marked INVALID. splax's kernels are cooperative tile kernels (256 threads per 16x16 tile
+sharing batches of Gaussians); on the CPU they need Warp >= 1.19 with
+``wp.config.enable_cpu_blocks = True`` (the worker sets it): Warp's CPU default runs one thread
+per block, which renders one pixel per tile from uninitialised batches (near-black images and
+crashes in the depth backward). Warp 1.14, the oldest splax 0.2.3 accepts, registers its JAX FFI
+targets for CUDA only ("No FFI handler registered ... on a platform Host"); 1.18 and 1.19 register
+CPU targets and have the same ``enable_cpu_blocks`` switch, off by default. Not part of the test
+suite (a run takes minutes).
 """
 
 from __future__ import annotations
@@ -46,7 +50,8 @@ def _time(fn, repeats: int, warmup: int = 2) -> float:
     return float(np.median(ts))
 
 
-def splax_worker(npz: str, repeats: int, render_depth: bool = True) -> None:
+def splax_worker(npz: str, repeats: int, render_depth: bool = True, warmup: int = 2,
+                 backward: bool = True) -> None:
     """Runs inside the splax venv: time splax.render on the scene, print JSON seconds."""
     import jax
     import jax.numpy as jnp
@@ -56,6 +61,14 @@ def splax_worker(npz: str, repeats: int, render_depth: bool = True) -> None:
     # the CPU ("JaxCallableGraphMode.WARP is not supported for JAX CPU FFI calls"); graph capture
     # is a CUDA launch optimisation, so on the CPU the same kernels run with plain launches.
     if jax.default_backend() == "cpu":
+        # splax's kernels are cooperative tile kernels (launch_tiled, block_dim 256, shared-memory
+        # batches of Gaussians loaded by the block's threads). Warp's CPU default resolves every
+        # block_dim to 1 (``wp.config.enable_cpu_blocks = False``): then only thread 0 of each
+        # 16x16 tile runs, so only one pixel per tile is rendered and the shared batches hold one
+        # loaded Gaussian and uninitialised records (the near-black images and the crashes of the
+        # depth backward seen before). Warp >= 1.19 runs CPU blocks of 2-1024 threads as
+        # cooperative fibers when asked to.
+        wp.config.enable_cpu_blocks = True
         _jax_callable = wp.jax_callable
 
         def _cpu_jax_callable(*a, **kw):
@@ -84,8 +97,8 @@ def splax_worker(npz: str, repeats: int, render_depth: bool = True) -> None:
 
     f = jax.jit(fwd)
     fb = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4)))
-    t_f = _time(lambda: jax.block_until_ready(f(*args)), repeats)
-    t_fb = _time(lambda: jax.block_until_ready(fb(*args)), repeats)
+    t_f = _time(lambda: jax.block_until_ready(f(*args)), repeats, warmup)
+    t_fb = _time(lambda: jax.block_until_ready(fb(*args)), repeats, warmup) if backward else float("nan")
     img, alpha = f(*args)
     np.save(npz + ".splax.npy", np.concatenate([np.asarray(img)[..., :3], np.asarray(alpha)[..., None]], -1))
     print(json.dumps({"fwd": t_f, "fwd_bwd": t_fb}))
@@ -107,16 +120,21 @@ def main() -> None:
     ap.add_argument("--scenes", default="profile,heavy", help="comma-separated: profile, heavy (default both)")
     ap.add_argument("--repeats", type=int, default=5, help="timed calls per pass and round (default 5)")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds ours/splax (default 2)")
+    ap.add_argument("--warmup", type=int, default=2,
+                    help="untimed calls before each timed pass, the first compiles (default 2; splax's CPU "
+                         "backward takes over a minute per call on (a))")
     ap.add_argument("--splax-venv", default=os.path.join(tempfile.gettempdir(), "splax-0.2.3-venv"),
                     help="throwaway venv holding splax 0.2.3, created if missing (default: $TMPDIR/splax-0.2.3-venv)")
+    ap.add_argument("--forward-only", action="store_true",
+                    help="time the forward only (splax's CPU backward is slow; the f+b columns read nan)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--worker-depth", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        splax_worker(args.worker, args.repeats, bool(args.worker_depth))
+        splax_worker(args.worker, args.repeats, bool(args.worker_depth), args.warmup, not args.forward_only)
         return
-    if args.repeats < 1 or args.rounds < 1:
-        ap.error("--repeats and --rounds must be >= 1")
+    if args.repeats < 1 or args.rounds < 1 or args.warmup < 1:
+        ap.error("--repeats, --rounds and --warmup must be >= 1")
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
     import jax
 
@@ -140,10 +158,15 @@ def main() -> None:
             fwd, fwd_bwd, params = bench.make_render_fns(scene)
             ours_f, ours_fb, sp_f, sp_fb = [], [], [], []
             for _ in range(args.rounds):
-                ours_f.append(bench.time_call(lambda: jax.block_until_ready(fwd(*params)), args.repeats)[0])
-                ours_fb.append(bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats)[0])
-                for _attempt in range(3):  # splax's CPU backward segfaults now and then
-                    out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats)],
+                ours_f.append(bench.time_call(lambda: jax.block_until_ready(fwd(*params)), args.repeats,
+                                              args.warmup)[0])
+                ours_fb.append(float("nan") if args.forward_only else
+                               bench.time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), args.repeats,
+                                               args.warmup)[0])
+                for _attempt in range(3):  # a crashed worker is retried (it crashed without enable_cpu_blocks)
+                    out = subprocess.run([py, os.path.abspath(__file__), "--worker", npz, "--repeats", str(args.repeats),
+                                          "--warmup", str(args.warmup)]
+                                         + (["--forward-only"] if args.forward_only else []),
                                          capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
                     if out.returncode >= 0:
                         break

@@ -2,7 +2,9 @@
 
 Rules (gsplat 1.5 / Inria 3DGS): pixel centres at +0.5; ``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy``
 with ``d = mean2d - pixel``; ``alpha = min(0.999, o exp(-sigma))``; Gaussians with ``sigma < 0`` or
-``alpha < 1/255`` are skipped; compositing stops *before* a Gaussian that would make
+``alpha < 1/255`` are skipped (exp is :func:`.native.exp_neg`, a branch-free polynomial that the
+tile kernels vectorise; every kernel here uses it, so they all composite the same values);
+compositing stops *before* a Gaussian that would make
 ``T <= 1e-4``. The forward saves the final transmittance T and the index (into the sorted
 intersection list) of the last contributing Gaussian; the backward walks back from it and
 recovers T before each Gaussian by dividing by ``1 - alpha``.
@@ -19,6 +21,7 @@ import functools
 
 import warp as wp
 
+from .native import bwd_row, exp_neg, fwd_row, lane_sums
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 #: slack on the log-cutoff so that float rounding never skips a pixel whose alpha reaches 1/255
@@ -80,7 +83,7 @@ def composite_top_id(
         sigma = gauss_sigma(conics[g], m[0] - fx, m[1] - fy)
         if sigma < 0.0:
             continue
-        alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-sigma))
+        alpha = wp.min(ALPHA_MAX, opacities[g] * exp_neg(sigma))
         if alpha < ALPHA_MIN:
             continue
         nT = T * (1.0 - alpha)
@@ -141,7 +144,7 @@ def composite_kernels(C: int):
             sigma = gauss_sigma(cn, dx, dy)
             if sigma < 0.0:
                 continue
-            alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-sigma))
+            alpha = wp.min(ALPHA_MAX, opacities[g] * exp_neg(sigma))
             if alpha < ALPHA_MIN:
                 continue
             nT = T * (1.0 - alpha)
@@ -209,7 +212,7 @@ def composite_kernels(C: int):
             if sigma < 0.0:
                 continue
             o = opacities[g]
-            vis = wp.exp(-sigma)
+            vis = exp_neg(sigma)
             alpha = wp.min(ALPHA_MAX, o * vis)
             if alpha < ALPHA_MIN:
                 continue
@@ -259,7 +262,7 @@ def composite_kernels(C: int):
             sigma = gauss_sigma(cn, dx, dy)
             if sigma < 0.0:
                 continue
-            alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(-sigma))
+            alpha = wp.min(ALPHA_MAX, opacities[g] * exp_neg(sigma))
             if alpha < ALPHA_MIN:
                 continue
             nT = T * (1.0 - alpha)
@@ -325,19 +328,32 @@ def shape_cols(m: wp.vec2, sh: wp.vec4, dy: float, x0: int, x1: int) -> wp.vec2i
     return wp.vec2i(lo, hi)
 
 
+#: lanes of the tile kernels' rows: the tile size they require
+TILE_LANES = 16
+
+
+def bwd_scratch_fields(C: int) -> int:
+    """Per-pixel float fields of the tile backward's scratch for C channels (see :mod:`.native`)."""
+    return 5 + 2 * C
+
+
 # Module-level cache: as for composite_kernels.
 @functools.cache
 def composite_tile_kernels(C: int):
     """Return ``(forward, backward)`` kernels with one thread per 16x16 tile (the CPU variant).
 
-    Per Gaussian the thread visits only the rows and, per row, the pixel interval where
-    ``sigma <= ln(255 o)`` is possible, and it tests sigma before the exp. Every visited pixel is
-    evaluated with exactly the arithmetic of the per-pixel kernels, so both give the same image;
-    the skipped pixels are the ones those kernels would skip after computing alpha < 1/255.
-    Per-pixel state lives in the output (forward) or scratch (backward) buffers that the thread
-    owns; the backward sums a Gaussian's gradient over the tile before one atomic add.
+    Per Gaussian the thread visits only the rows where ``sigma <= ln(255 o)`` is possible and
+    whose span of such pixels is not empty, and it processes each such row as 16 lanes at once
+    (:func:`.native.fwd_row` / :func:`.native.bwd_row`: masks instead of branches, so the CPU
+    compiler vectorises the row). Every lane is evaluated with exactly the arithmetic of the
+    per-pixel kernels, so both give the same image; the skipped rows hold only pixels those
+    kernels would skip after computing alpha < 1/255. Per-pixel state lives in per-tile scratch
+    (16 lanes per row, structure of arrays) that the thread owns; the backward sums a Gaussian's
+    gradient over the tile before one atomic add. The tile size must be 16 (``TILE_LANES``).
     """
     vecC = wp.types.vector(length=C, dtype=wp.float32)
+    NF = bwd_scratch_fields(C)
+    NG = 7 + C
 
     @wp.kernel(module="unique", enable_backward=False)
     def composite_fwd_tile(
@@ -346,14 +362,16 @@ def composite_tile_kernels(C: int):
         means2d: wp.array(dtype=wp.vec2),
         conics: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
-        colors: wp.array(dtype=vecC),
+        colf: wp.array(dtype=float),
         depths: wp.array(dtype=float),
         width: int,
         height: int,
-        tile: int,
         tiles_x: int,
         tile0: int,
-        done: wp.array(dtype=wp.int32),
+        sT: wp.array(dtype=float),
+        sD: wp.array(dtype=float),
+        sL: wp.array(dtype=wp.int32),
+        sC: wp.array(dtype=float),
         live: wp.array(dtype=wp.vec2i),
         out_color: wp.array(dtype=vecC),
         out_depth: wp.array(dtype=float),
@@ -361,22 +379,22 @@ def composite_tile_kernels(C: int):
         out_last: wp.array(dtype=wp.int32),
     ):
         t = wp.tid() + tile0
-        x0 = (t % tiles_x) * tile
-        y0 = (t // tiles_x) * tile
-        x1 = wp.min(x0 + tile, width)
-        y1 = wp.min(y0 + tile, height)
+        x0 = (t % tiles_x) * 16
+        y0 = (t // tiles_x) * 16
+        x1 = wp.min(x0 + 16, width)
+        y1 = wp.min(y0 + 16, height)
+        nk = x1 - x0
         start = ranges[t, 0]
         end = ranges[t, 1]
-        r0 = t * tile - y0  # live[r0 + py]: columns [lo, hi] of row py that are not saturated yet
+        tb = t * 256
+        for q in range(256):
+            sT[tb + q] = 1.0
+            sD[tb + q] = 0.0
+            sL[tb + q] = start - 1
+        for q in range(256 * C):
+            sC[tb * C + q] = 0.0
         for py in range(y0, y1):
-            live[r0 + py] = wp.vec2i(x0, x1 - 1)
-            for px in range(x0, x1):
-                pix = py * width + px
-                out_color[pix] = vecC()
-                out_depth[pix] = 0.0
-                out_T[pix] = 1.0
-                out_last[pix] = start - 1
-                done[pix] = 0
+            live[t * 16 + py - y0] = wp.vec2i(x0, x1 - 1)  # columns of row py not saturated yet
         ylo = y0  # rows [ylo, yhi] still hold an unsaturated pixel
         yhi = y1 - 1
         for j in range(start, end):
@@ -389,50 +407,43 @@ def composite_tile_kernels(C: int):
             tcut = cutoff(o)
             sh = ellipse_shape(cn, tcut)
             rows = shape_rows(m, sh, ylo, yhi + 1)
-            c = colors[g]
             d = depths[g]
             for py in range(rows[0], rows[1] + 1):
-                lv = live[r0 + py]
+                r = py - y0
+                lv = live[t * 16 + r]
                 if lv[0] > lv[1]:
                     continue
-                fy = float(py) + 0.5
-                dy = m[1] - fy
+                dy = m[1] - (float(py) + 0.5)
                 cols = shape_cols(m, sh, dy, lv[0], lv[1] + 1)
-                for px in range(cols[0], cols[1] + 1):
-                    pix = py * width + px
-                    if done[pix] != 0:
-                        continue
-                    dx = m[0] - (float(px) + 0.5)
-                    sigma = gauss_sigma(cn, dx, dy)
-                    if sigma < 0.0 or sigma > tcut:
-                        continue
-                    alpha = wp.min(ALPHA_MAX, o * wp.exp(-sigma))
-                    if alpha < ALPHA_MIN:
-                        continue
-                    T = out_T[pix]
-                    nT = T * (1.0 - alpha)
-                    if nT <= T_MIN:
-                        done[pix] = 1
-                        # shrink the row's live columns, then the tile's live rows
-                        lo = lv[0]
-                        hi = lv[1]
-                        while lo <= hi and done[py * width + lo] != 0:
-                            lo += 1
-                        while hi >= lo and done[py * width + hi] != 0:
-                            hi -= 1
-                        lv = wp.vec2i(lo, hi)
-                        live[r0 + py] = lv
-                        if lo > hi:
-                            while ylo <= yhi and live[r0 + ylo][0] > live[r0 + ylo][1]:
-                                ylo += 1
-                            while yhi >= ylo and live[r0 + yhi][0] > live[r0 + yhi][1]:
-                                yhi -= 1
-                        continue
-                    w = alpha * T
-                    out_color[pix] = out_color[pix] + c * w
-                    out_depth[pix] = out_depth[pix] + d * w
-                    out_T[pix] = nT
-                    out_last[pix] = j
+                if cols[0] > cols[1]:
+                    continue
+                nstop = fwd_row(sT, sD, sL, sC, colf, C, t, tb, r, x0, nk, m[0], dy, cn[0], cn[1], cn[2],
+                                o, tcut, d, g, j)
+                if nstop > 0:
+                    # shrink the row's live columns, then the tile's live rows
+                    lo = lv[0]
+                    hi = lv[1]
+                    while lo <= hi and sT[tb + 16 * r + lo - x0] < 0.0:
+                        lo += 1
+                    while hi >= lo and sT[tb + 16 * r + hi - x0] < 0.0:
+                        hi -= 1
+                    live[t * 16 + r] = wp.vec2i(lo, hi)
+                    if lo > hi:
+                        while ylo <= yhi and live[t * 16 + ylo - y0][0] > live[t * 16 + ylo - y0][1]:
+                            ylo += 1
+                        while yhi >= ylo and live[t * 16 + yhi - y0][0] > live[t * 16 + yhi - y0][1]:
+                            yhi -= 1
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                pix = py * width + px
+                q = tb + 16 * (py - y0) + px - x0
+                out_T[pix] = wp.abs(sT[q])
+                out_depth[pix] = sD[q]
+                out_last[pix] = sL[q]
+                c = vecC()
+                for ch in range(C):
+                    c[ch] = sC[(t * C + ch) * 256 + q - tb]
+                out_color[pix] = c
 
     @wp.kernel(module="unique", enable_backward=False)
     def composite_bwd_tile(
@@ -441,11 +452,10 @@ def composite_tile_kernels(C: int):
         means2d: wp.array(dtype=wp.vec2),
         conics: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
-        colors: wp.array(dtype=vecC),
+        colf: wp.array(dtype=float),
         depths: wp.array(dtype=float),
         width: int,
         height: int,
-        tile: int,
         tiles_x: int,
         tile0: int,
         out_T: wp.array(dtype=float),
@@ -453,9 +463,10 @@ def composite_tile_kernels(C: int):
         v_color: wp.array(dtype=vecC),
         v_depth: wp.array(dtype=float),
         v_alpha: wp.array(dtype=float),
-        s_T: wp.array(dtype=float),
-        s_buf: wp.array(dtype=vecC),
-        s_bufd: wp.array(dtype=float),
+        bs: wp.array(dtype=float),
+        bl: wp.array(dtype=wp.int32),
+        gs: wp.array(dtype=float),
+        gout: wp.array(dtype=float),
         row_last: wp.array(dtype=wp.int32),
         v_means2d: wp.array(dtype=wp.vec2),
         v_conics: wp.array(dtype=wp.vec3),
@@ -464,81 +475,78 @@ def composite_tile_kernels(C: int):
         v_depths: wp.array(dtype=float),
     ):
         t = wp.tid() + tile0
-        x0 = (t % tiles_x) * tile
-        y0 = (t // tiles_x) * tile
-        x1 = wp.min(x0 + tile, width)
-        y1 = wp.min(y0 + tile, height)
+        x0 = (t % tiles_x) * 16
+        y0 = (t // tiles_x) * 16
+        x1 = wp.min(x0 + 16, width)
+        y1 = wp.min(y0 + 16, height)
+        nk = x1 - x0
         start = ranges[t, 0]
-        r0 = t * tile - y0  # row_last[r0 + py]: the last contributing index of row py
+        tb = t * 256
+        fb = t * NF * 256
+        for q in range(16 * NG):
+            gs[t * NG * 16 + q] = 0.0
+        for r in range(y1 - y0):
+            row_last[t * 16 + r] = start - 1
         jmax = start - 1
-        for py in range(y0, y1):
-            rl = start - 1
-            for px in range(x0, x1):
-                pix = py * width + px
-                s_T[pix] = out_T[pix]
-                s_buf[pix] = vecC()
-                s_bufd[pix] = 0.0
-                rl = wp.max(rl, out_last[pix])
-            row_last[r0 + py] = rl
-            jmax = wp.max(jmax, rl)
+        for q in range(16 * (y1 - y0)):  # rows past the image are never visited
+            r = q // 16
+            k = q % 16
+            bs[fb + 2 * 256 + q] = 0.0
+            for ch in range(C):
+                bs[fb + (5 + ch) * 256 + q] = 0.0
+            if k < nk:
+                pix = (y0 + r) * width + x0 + k
+                Tf = out_T[pix]
+                bs[fb + q] = Tf
+                bs[fb + 256 + q] = Tf
+                bs[fb + 3 * 256 + q] = v_depth[pix]
+                bs[fb + 4 * 256 + q] = v_alpha[pix]
+                vc = v_color[pix]
+                for ch in range(C):
+                    bs[fb + (5 + C + ch) * 256 + q] = vc[ch]
+                lp = out_last[pix]
+                bl[tb + q] = lp
+                row_last[t * 16 + r] = wp.max(row_last[t * 16 + r], lp)
+                jmax = wp.max(jmax, lp)
+            else:
+                bs[fb + q] = 1.0
+                bs[fb + 256 + q] = 1.0
+                bs[fb + 3 * 256 + q] = 0.0
+                bs[fb + 4 * 256 + q] = 0.0
+                for ch in range(C):
+                    bs[fb + (5 + C + ch) * 256 + q] = 0.0
+                bl[tb + q] = start - 1
         for jj in range(jmax - start + 1):
             j = jmax - jj
             g = ids[j]
             m = means2d[g]
             cn = conics[g]
             o = opacities[g]
-            c = colors[g]
             d = depths[g]
             tcut = cutoff(o)
             sh = ellipse_shape(cn, tcut)
             rows = shape_rows(m, sh, y0, y1)
-            g_m = wp.vec2()
-            g_cn = wp.vec3()
-            g_o = float(0.0)
-            g_c = vecC()
-            g_d = float(0.0)
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):
-                if j > row_last[r0 + py]:
+                r = py - y0
+                if j > row_last[t * 16 + r]:
                     continue  # every pixel of the row stopped before j
-                fy = float(py) + 0.5
-                dy = m[1] - fy
+                dy = m[1] - (float(py) + 0.5)
                 cols = shape_cols(m, sh, dy, x0, x1)
-                for px in range(cols[0], cols[1] + 1):
-                    pix = py * width + px
-                    if j > out_last[pix]:
-                        continue
-                    dx = m[0] - (float(px) + 0.5)
-                    sigma = gauss_sigma(cn, dx, dy)
-                    if sigma < 0.0 or sigma > tcut:
-                        continue
-                    vis = wp.exp(-sigma)
-                    alpha = wp.min(ALPHA_MAX, o * vis)
-                    if alpha < ALPHA_MIN:
-                        continue
-                    hit = 1
-                    ra = 1.0 / (1.0 - alpha)
-                    T = s_T[pix] * ra
-                    s_T[pix] = T
-                    fac = alpha * T
-                    vc = v_color[pix]
-                    vd = v_depth[pix]
-                    g_c = g_c + vc * fac
-                    g_d = g_d + vd * fac
-                    buf = s_buf[pix]
-                    bufd = s_bufd[pix]
-                    v_a = wp.dot(c * T - buf * ra, vc) + (d * T - bufd * ra) * vd + out_T[pix] * ra * v_alpha[pix]
-                    s_buf[pix] = buf + c * fac
-                    s_bufd[pix] = bufd + d * fac
-                    gr = alpha_grads(cn, o, vis, v_a, dx, dy)
-                    g_cn = g_cn + wp.vec3(gr[0], gr[1], gr[2])
-                    g_m = g_m + wp.vec2(gr[3], gr[4])
-                    g_o = g_o + gr[5]
+                if cols[0] > cols[1]:
+                    continue
+                hit += bwd_row(bs, bl, gs, colf, C, NG, t, tb, r, x0, nk, m[0], dy, cn[0], cn[1], cn[2],
+                               o, tcut, d, g, j)
             if hit != 0:
+                lane_sums(gs, gout, t, NG)
+                gb = t * NG
+                g_c = vecC()
+                for ch in range(C):
+                    g_c[ch] = gout[gb + ch]
                 wp.atomic_add(v_colors, g, g_c)
-                wp.atomic_add(v_depths, g, g_d)
-                wp.atomic_add(v_conics, g, g_cn)
-                wp.atomic_add(v_means2d, g, g_m)
-                wp.atomic_add(v_opacities, g, g_o)
+                wp.atomic_add(v_depths, g, gout[gb + C])
+                wp.atomic_add(v_conics, g, wp.vec3(gout[gb + C + 1], gout[gb + C + 2], gout[gb + C + 3]))
+                wp.atomic_add(v_means2d, g, wp.vec2(gout[gb + C + 4], gout[gb + C + 5]))
+                wp.atomic_add(v_opacities, g, gout[gb + C + 6])
 
     return composite_fwd_tile, composite_bwd_tile

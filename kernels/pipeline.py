@@ -30,7 +30,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 from .binning import count_tiles_kernel, depth_keys_kernel, depth_rank_kernel, tile_ranges_kernel, write_keys_kernel
-from .composite import composite_kernels, composite_tile_kernels, composite_top_id
+from .composite import TILE_LANES, bwd_scratch_fields, composite_kernels, composite_tile_kernels, composite_top_id
 from .config import resolve_composite
 from .parallel import launch_split, n_threads_for, run_bands
 from .projection import project_bwd_kernel, project_fwd_kernel
@@ -211,6 +211,13 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     return ranges, ids[:n_isect], n_isect
 
 
+def _flat_floats(ws: Workspace, colors, n: int, C: int) -> wp.array:
+    """``colors`` (n,) vecC seen as n * C contiguous floats (a one-element scratch when n = 0)."""
+    if n == 0:
+        return ws.get("flat_empty", 1, wp.float32)
+    return wp.array(ptr=colors.ptr, shape=(n * C,), dtype=wp.float32, device=colors.device, copy=False)
+
+
 def _raise_flags(host_flags: np.ndarray) -> None:
     for k in range(N_FLAGS):
         if host_flags[k]:
@@ -277,14 +284,21 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
         tiles_x, tiles_y = grid_dims(width, height, tile)
         n_threads = n_threads_for(device, threads)
         if resolve_composite(composite, device) == "tile":
+            if tile != TILE_LANES:
+                raise ValueError(f"the tile compositing kernels need tile={TILE_LANES}, got {tile}")
             fwd, _ = composite_tile_kernels(C)
-            done = st.ws.get("done", width * height, wp.int32)
-            live = st.ws.get("live", tiles_x * tiles_y * tile, wp.vec2i)
+            n_tiles = tiles_x * tiles_y
+            sT = st.ws.get("tile_T", n_tiles * 256, wp.float32)
+            sD = st.ws.get("tile_D", n_tiles * 256, wp.float32)
+            sL = st.ws.get("tile_L", n_tiles * 256, wp.int32)
+            sC = st.ws.get("tile_C", n_tiles * 256 * C, wp.float32)
+            live = st.ws.get("live", n_tiles * 16, wp.vec2i)
+            colf = _flat_floats(st.ws, colors, n, C)
 
             def launch(_w, t0, t1):
                 wp.launch(fwd, dim=t1 - t0,
-                          inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
-                                  tiles_x, t0, done, live],
+                          inputs=[ranges, ids, means2d, conics, opacities, colf, depths, width, height, tiles_x, t0,
+                                  sT, sD, sL, sC, live],
                           outputs=[out_color, out_depth, out_T, out_last], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
@@ -363,19 +377,22 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
             return a
 
         if variant == "tile":
+            if tile != TILE_LANES:
+                raise ValueError(f"the tile compositing kernels need tile={TILE_LANES}, got {tile}")
             _, bwd = composite_tile_kernels(C)
-            hw = width * height
-            s_T = ws.get("s_T", hw, wp.float32)
-            s_buf = ws.get("s_buf", hw, colors.dtype)
-            s_bufd = ws.get("s_bufd", hw, wp.float32)
-            row_last = ws.get("row_last", tiles_x * tiles_y * tile, wp.int32)
+            n_tiles = tiles_x * tiles_y
+            bs = ws.get("tile_bwd", n_tiles * 256 * bwd_scratch_fields(C), wp.float32)
+            bl = ws.get("tile_bwd_L", n_tiles * 256, wp.int32)
+            gs = ws.get("tile_gsum", n_tiles * 16 * (7 + C), wp.float32)
+            gout = ws.get("tile_gout", n_tiles * (7 + C), wp.float32)
+            row_last = ws.get("row_last", n_tiles * 16, wp.int32)
+            colf = _flat_floats(ws, colors, n, C)
 
             def launch(w, t0, t1):
                 a = accs[w]
                 wp.launch(bwd, dim=t1 - t0,
-                          inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, height, tile,
-                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, s_T, s_buf, s_bufd,
-                                  row_last],
+                          inputs=[ranges, ids, means2d, conics, opacities, colf, depths, width, height,
+                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, bs, bl, gs, gout, row_last],
                           outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)

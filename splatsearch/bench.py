@@ -257,6 +257,21 @@ def time_call(fn, repeats: int = 5, warmup: int = 2) -> tuple[float, float]:
     return float(np.median(ts)), float(np.min(ts))
 
 
+def time_call_cpu(fn, repeats: int = 5, warmup: int = 2) -> tuple[float, float]:
+    """(median wall seconds, median process CPU seconds, all threads) of ``fn()``. On a machine
+    shared with other jobs the CPU seconds are the steadier figure: CPU seconds / threads is
+    about the wall time the call would take with its cores to itself."""
+    for _ in range(warmup):
+        fn()
+    walls, cpus = [], []
+    for _ in range(repeats):
+        c0, t0 = time.process_time(), time.perf_counter()
+        fn()
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    return float(np.median(walls)), float(np.median(cpus))
+
+
 #: the box's 2-core AVX2 ceiling for forward Gaussian-pixel evaluations (see DESIGN.md)
 CPU_PEAK_EVALS_PER_S = 5.0e9
 
@@ -271,6 +286,8 @@ class BenchResult:
     evals: int
     fwd_s: float
     fwd_bwd_s: float
+    fwd_cpu_s: float = float("nan")  # process CPU seconds (all threads) of one forward
+    fwd_bwd_cpu_s: float = float("nan")
 
     @property
     def evals_per_s(self) -> float:
@@ -311,8 +328,8 @@ def run_benchmark(scene: Scene, name: str, repeats: int = 5, composite: str | No
     from splatsearch.rasterization import rasterize
 
     fwd, fwd_bwd, params = make_render_fns(scene, composite, threads)
-    t_f, _ = time_call(lambda: jax.block_until_ready(fwd(*params)), repeats)
-    t_fb, _ = time_call(lambda: jax.block_until_ready(fwd_bwd(*params)), repeats)
+    t_f, c_f = time_call_cpu(lambda: jax.block_until_ready(fwd(*params)), repeats)
+    t_fb, c_fb = time_call_cpu(lambda: jax.block_until_ready(fwd_bwd(*params)), repeats)
     n_isect = int(rasterize(*params, scene.width, scene.height).meta["n_isect"])
     return BenchResult(name, scene.means.shape[0], scene.width, scene.height, n_isect,
-                       count_gaussian_pixel_evaluations(scene), t_f, t_fb)
+                       count_gaussian_pixel_evaluations(scene), t_f, t_fb, c_f, c_fb)

@@ -326,8 +326,8 @@ def rasterize(
         eps2d: low-pass added to the 2-D covariance diagonal, in px^2.
         backgrounds: optional (C,) or (B, C) colour composited behind the Gaussians.
         validate: check values (NaN/Inf, ranges, K) on the device when inputs are traced.
-        composite: compositing kernel, "tile" (one thread per 16x16 tile walking exact ellipse
-            spans; the CPU default) or "pixel" (one thread per pixel; the CUDA default). Both give
+        composite: compositing kernel, "tile" (one thread per 16x16 tile; the rows each Gaussian's
+            ellipse reaches are processed as 16 SIMD lanes; the CPU default) or "pixel" (one thread per pixel; the CUDA default). Both give
             the same images and gradients. None: the default, which ``SPLATSEARCH_COMPOSITE``
             may set (see :mod:`splatsearch.kernels.config`).
         threads: CPU worker threads (>= 1); None: the usable cores, or ``SPLATSEARCH_THREADS``.

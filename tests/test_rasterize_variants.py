@@ -87,3 +87,28 @@ def test_run_options_are_checked(monkeypatch):
     monkeypatch.setenv(config.THREADS_ENV, "3")
     assert config.resolve_threads(None, "cpu") == 3
     assert config.resolve_threads(2, "cpu") == 2
+
+
+def test_polynomial_exp_is_accurate():
+    """The compositing kernels' branch-free exp(-s) (kernels/native.py) against float64 exp: relative
+    error within a few float32 ulps on the range that can give alpha >= 1/255, monotone, and so
+    small past its clamp that such alphas are skipped."""
+    import warp as wp
+
+    from splatsearch.kernels.native import exp_neg
+    from splatsearch.kernels.projection import ALPHA_MIN
+
+    @wp.kernel(enable_backward=False)
+    def _eval(s: wp.array(dtype=float), out: wp.array(dtype=float)):
+        i = wp.tid()
+        out[i] = exp_neg(s[i])
+
+    s = np.concatenate([np.linspace(0.0, 16.0, 200_001), [20.0, 100.0, 1e30]]).astype(np.float32)
+    out = wp.zeros(len(s), dtype=float, device="cpu")
+    wp.launch(_eval, dim=len(s), inputs=[wp.array(s, dtype=float, device="cpu")], outputs=[out], device="cpu")
+    got = out.numpy().astype(np.float64)
+    ref = np.exp(-s.astype(np.float64))
+    live = s <= np.log(255.0) + 1e-3
+    assert np.abs(got[live] / ref[live] - 1).max() < 3e-7
+    assert np.all(np.diff(got[:-3]) <= 0)
+    assert np.all(0.999 * got[-3:] < ALPHA_MIN)
