@@ -103,7 +103,9 @@ class TrackerConfig:
     """Tracking settings.
 
     iters: Adam steps per frame. lr_rot (rad), lr_trans (m): Adam step sizes of the se(3)
-    increment. sil_thresh: silhouette above which a pixel is trusted. w_color: weight of the
+    increment. lr_final: the step sizes decay exponentially to this fraction of themselves by the
+    last step (1: constant); Adam's steps keep their size near the optimum, so a constant step
+    leaves the pose jittering by about one step. sil_thresh: silhouette above which a pixel is trusted. w_color: weight of the
     colour L1 (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are
     left out (0: keep all). min_valid_frac: fewer trusted pixels than this fraction of the image
     means the map does not cover the view: tracking is skipped. diverge_ratio, max_rot (rad),
@@ -123,6 +125,7 @@ class TrackerConfig:
     iters: int = 40
     lr_rot: float = 2e-3
     lr_trans: float = 2e-3
+    lr_final: float = 1.0
     sil_thresh: float = 0.99
     w_color: float = 0.5
     outlier_k: float = 10.0
@@ -140,6 +143,8 @@ class TrackerConfig:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
         if not (self.lr_rot > 0 and self.lr_trans > 0):
             raise ValueError("lr_rot and lr_trans must be > 0")
+        if not 0 < self.lr_final <= 1:
+            raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
         if self.downscale < 1:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not 0 < self.sil_thresh < 1:
@@ -167,7 +172,7 @@ _TRACK_FNS: dict = {}
 
 def _track_fn(K: np.ndarray, W: int, H: int, cfg: TrackerConfig):
     key = (np.asarray(K, np.float32).tobytes(), W, H, cfg.iters, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh,
-           cfg.w_color, cfg.outlier_k, cfg.planar)
+           cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     Kj = jnp.asarray(K, jnp.float32)
@@ -199,7 +204,9 @@ def _track_fn(K: np.ndarray, W: int, H: int, cfg: TrackerConfig):
         basis = planar_basis(vm0) if planar else jnp.eye(6, dtype=jnp.float32)
         xi0 = jnp.zeros(basis.shape[1], jnp.float32)
 
-        def body(carry, _):
+        decay = jnp.log(jnp.float32(cfg.lr_final)) / max(cfg.iters - 1, 1)
+
+        def body(carry, k):
             xi, st, best_xi, best_loss = carry
             (loss, _), g = vg(xi, margs, rgb, depth, vm0, basis)
             better = loss < best_loss  # NaN compares False: a NaN step is never kept
@@ -207,11 +214,11 @@ def _track_fn(K: np.ndarray, W: int, H: int, cfg: TrackerConfig):
             best_loss = jnp.where(better, loss, best_loss)
             g = jnp.where(jnp.isfinite(g), g, 0.0)
             upd, st = adam.update(g, st)
-            return (xi + upd * lrs, st, best_xi, best_loss), loss
+            return (xi + upd * lrs * jnp.exp(decay * k), st, best_xi, best_loss), loss
 
         loss0, frac0 = loss_p(xi0, margs, rgb, depth, vm0, basis)
         carry = (xi0, adam.init(xi0), xi0, jnp.asarray(jnp.inf, jnp.float32))
-        (xi, st, best_xi, best_loss), losses = jax.lax.scan(body, carry, None, length=cfg.iters)
+        (xi, st, best_xi, best_loss), losses = jax.lax.scan(body, carry, jnp.arange(cfg.iters, dtype=jnp.float32))
         # the last update has not been scored yet
         last, _ = loss_p(xi, margs, rgb, depth, vm0, basis)
         better = last < best_loss

@@ -53,3 +53,12 @@ def test_planar_tracking_recovers_an_in_plane_offset(fitted):
     assert d < 0.005 and ang < np.radians(0.3), (d0, ang0, d, ang)
     assert abs(_centre(r.viewmat)[2] - _centre(f.viewmat)[2]) < 1e-4
     np.testing.assert_allclose(r.viewmat[:3, 2], f.viewmat[:3, 2], atol=1e-5)
+
+
+def test_bad_lr_final_is_rejected():
+    from splatsearch.slam import TrackerConfig
+
+    with pytest.raises(ValueError, match="lr_final"):
+        TrackerConfig(lr_final=0.0).validate()
+    with pytest.raises(ValueError, match="lr_final"):
+        TrackerConfig(lr_final=1.5).validate()
