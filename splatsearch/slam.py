@@ -105,8 +105,8 @@ class TrackerConfig:
     iters: Adam steps per frame. lr_rot (rad), lr_trans (m): Adam step sizes of the se(3)
     increment. lr_final: the step sizes decay exponentially to this fraction of themselves by the
     last step (1: constant); Adam's steps keep their size near the optimum, so a constant step
-    leaves the pose jittering by about one step. sil_thresh: silhouette above which a pixel is trusted. w_color: weight of the
-    colour L1 (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are
+    leaves the pose jittering by about one step. sil_thresh: silhouette above which a pixel is
+    trusted. w_color: weight of the colour L1 (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are
     left out (0: keep all). min_valid_frac: fewer trusted pixels than this fraction of the image
     means the map does not cover the view: tracking is skipped. diverge_ratio, max_rot (rad),
     max_trans (m): divergence tests (see the module docstring). submap_margin: Gaussians whose

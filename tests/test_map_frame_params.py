@@ -29,7 +29,8 @@ def test_pose_refinement_pulls_a_wrong_keyframe_pose_back(walk):
     frames, *_ = walk
     f1 = frames[1]  # same place as frame 0, turned by 6 degrees
     m = _mapper(walk, pose_refine=True, pose_lr_rot=5e-4, pose_lr_trans=5e-4)
-    noisy = np.asarray(perturb_viewmat(jnp.asarray(f1.viewmat), jnp.array([0.005, -0.006, 0.004, 0.008, -0.006, 0.008])))
+    xi = jnp.array([0.005, -0.006, 0.004, 0.008, -0.006, 0.008])
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f1.viewmat), xi))
     ang0, d0 = pose_distance(noisy, f1.viewmat)
     st = m.update(f1.rgb, f1.depth, noisy, refine_pose=True, tag=7)
     assert set(st["poses"]) == {7}
