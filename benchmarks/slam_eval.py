@@ -68,7 +68,10 @@ def _run(name: str, seq, job: MapJob, out: str) -> dict:
     print(f"{name}: train PSNR {ev.get('psnr', float('nan')):.2f} dB, held-out {ho.get('psnr', float('nan')):.2f}, "
           f"ATE {100 * summary.get('ate', {}).get('rmse', float('nan')):.2f} cm, "
           f"track {rec['timing']['median_track_s']} s, map {rec['timing']['median_map_s']} s, "
-          f"load {load0:.1f}->{rec['load_end']:.1f}", flush=True)
+          f"load {load0:.1f}->{rec['load_end']:.1f}"
+          + (f", odometry ATE {100 * summary['ate_odometry']['rmse']:.2f} cm" if "ate_odometry" in summary else "")
+          + (f", keyframes with exposure {summary['train_keyframes_exposure']['psnr']:.2f} dB"
+             if "train_keyframes_exposure" in summary else ""), flush=True)
     return rec
 
 
@@ -81,6 +84,9 @@ def main(argv=None) -> int:
     p.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
     p.add_argument("--rgbd-odometry", action="store_true", help="start tracking from OpenCV RGB-D odometry")
+    p.add_argument("--planar", action="store_true", help="track planar motions only (ground robot)")
+    p.add_argument("--pose-refine", action="store_true", help="refine tracked keyframe poses with the map")
+    p.add_argument("--exposure", action="store_true", help="fit an affine colour per frame")
     p.add_argument("--runs", default=None, help="comma-separated subset of the runs (default: all)")
     p.add_argument("--iters", type=int, default=None, help="TUM mapping steps per frame (default 30)")
     p.add_argument("--first-iters", type=int, default=None, help="TUM mapping steps on the first frame (default 60)")
@@ -89,7 +95,10 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.seed >= 1000:
         p.error("seeds >= 1000 are evaluation houses: never tuned on")
-    tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry)
+    tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry,
+                         planar=a.planar)
+    for d in (REAL, SIM):
+        d.update(pose_refine=a.pose_refine, pose_planar=a.planar, exposure=a.exposure)
     global REAL_REFINE
     for key, val in (("iters", a.iters), ("first_iters", a.first_iters)):
         if val is not None:

@@ -133,11 +133,12 @@ def _cmd_map(args: argparse.Namespace) -> int:
     if real:  # sensor depth is noisy: weigh it less and keep means steadier (docs/mapping.md)
         mcfg.lambda_g = 0.3
         mcfg.lr = dict(mcfg.lr, means=2e-4, colors=1e-2)
+    mcfg.pose_refine, mcfg.pose_planar, mcfg.exposure = args.pose_refine, args.track_planar, args.exposure
     from splatsearch.cli_config import apply_overrides, config_overrides
 
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale,
-                         rgbd_odometry=args.track_rgbd_odometry)
+                         rgbd_odometry=args.track_rgbd_odometry, planar=args.track_planar)
     if args.track_from_gt and not args.track:
         raise ValueError("--track-from-gt refines poses by tracking: give --track too")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
@@ -169,7 +170,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
         line += f", tracking {tm['median_track_s']:.2f} s"
     console.print(line)
     for label, key in (("training views", "train"), ("training views at GT poses", "train_at_gt_pose"),
-                       ("held-out views", "held_out")):
+                       ("keyframes, own exposure applied", "train_keyframes_exposure"), ("held-out views", "held_out")):
         ev = summary.get(key)
         if ev:
             console.print(f"{label}: PSNR {ev['psnr']:.2f} dB ({ev['psnr_valid']:.2f} dB where depth is valid), "
@@ -447,6 +448,16 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                         "Adam steps (default: off)")
     m.add_argument("--track-downscale", type=int, default=1,
                    help="track on images this many times smaller (faster; default 1)")
+    m.add_argument("--track-planar", action="store_true",
+                   help="with --track: a ground robot's camera (world z up): only horizontal translation and "
+                        "turns about the vertical are estimated, so height, roll and pitch cannot drift "
+                        "(default: off, full 6-DoF)")
+    m.add_argument("--pose-refine", action="store_true",
+                   help="with --track: refine the tracked keyframe poses jointly with the map during mapping "
+                        "(a local bundle adjustment through the renderer; default: off)")
+    m.add_argument("--exposure", action="store_true",
+                   help="fit an affine colour (gain, bias) per frame, for cameras with auto-exposure; "
+                        "summary.json adds the keyframes' PSNR with it applied (default: off)")
     m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel (default 3)")
     m.add_argument("--pixel-scale", type=float, default=None,
                    help="size of new Gaussians in pixels (default: --stride for datasets, 1 for the simulator)")

@@ -76,7 +76,7 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
             if progress is not None:
                 progress(r, k + 1, len(train))
         if job.refine:
-            slam.mapper.refine(job.refine)
+            slam.refine(job.refine)
     except KeyboardInterrupt:
         interrupted = True
     wall = time.perf_counter() - t_start
@@ -109,6 +109,8 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
     ok = [(i, p) for i, p, r in zip(done, est, slam.results) if r.mapped]
     summary["train"] = slam.mapper.evaluate([Frame(seq.frames[i].rgb, seq.frames[i].depth, p) for i, p in ok]) \
         if ok else None
+    if job.mapper.exposure and slam.mapper.keyframes:
+        summary["train_keyframes_exposure"] = slam.mapper.evaluate(slam.mapper.keyframes, exposure=True)
     if seq.has_gt:
         gt = seq.gt_viewmats()
         ok_gt = [i for i, _ in ok if np.all(np.isfinite(gt[i]))]

@@ -63,6 +63,15 @@ class MapperConfig:
     depth outside [``min_depth``, ``max_depth``] m, and with ``depth_edge_rel`` > 0 at depth
     edges, is untrusted; ``fill_holes`` densifies pixels without depth at the depth of the
     background next to them, so that the colour loss fits them instead of leaving them empty.
+
+    Per-frame parameters, optimised with the map by the same steps (each window frame keeps its
+    own Adam state): ``pose_refine`` refines the poses of frames added with ``refine_pose=True``
+    (tracked frames; a local bundle adjustment through the rasterizer's viewmat gradient, step
+    sizes ``pose_lr_rot`` rad / ``pose_lr_trans`` m, restricted to a ground robot's planar
+    motions with ``pose_planar``); ``exposure`` fits an affine colour (gain ``exp(g)``, bias
+    ``b``) per frame, applied to the render in the loss (step size ``exposure_lr``): auto-exposure
+    of real cameras then no longer bends the map's colours. The first frame's exposure is fixed
+    (it sets the colour scale).
     """
 
     iters: int = 15
@@ -92,6 +101,12 @@ class MapperConfig:
     max_depth: float = float("inf")
     depth_edge_rel: float = 0.0
     fill_holes: bool = False
+    pose_refine: bool = False
+    pose_lr_rot: float = 2e-4
+    pose_lr_trans: float = 2e-4
+    pose_planar: bool = False
+    exposure: bool = False
+    exposure_lr: float = 2e-3
 
     def validate(self) -> None:
         if self.window_select not in ("overlap", "recent"):
@@ -102,6 +117,8 @@ class MapperConfig:
             raise ValueError(f"first_iters must be >= 0, got {self.first_iters}")
         if not self.pixel_scale > 0 or not 0 <= self.min_depth < self.max_depth or self.depth_edge_rel < 0:
             raise ValueError("pixel_scale > 0, 0 <= min_depth < max_depth and depth_edge_rel >= 0 are required")
+        if not (self.pose_lr_rot > 0 and self.pose_lr_trans > 0 and self.exposure_lr > 0):
+            raise ValueError("pose_lr_rot, pose_lr_trans and exposure_lr must be > 0")
         if self.iters < 0 or self.window < 1 or self.keyframe_every < 1 or self.stride < 1:
             raise ValueError("iters >= 0, window >= 1, keyframe_every >= 1 and stride >= 1 are required")
         missing = {"means", "log_scales", "quats", "opacity_logits", "colors"} - set(self.lr)
@@ -112,11 +129,25 @@ class MapperConfig:
 @dataclass
 class Frame:
     """rgb (H, W, 3) float32 [0, 1]; depth (H, W) float32 metres (0 invalid); viewmat (4, 4)
-    world-to-camera, or None for a frame without a known pose (to be tracked)."""
+    world-to-camera, or None for a frame without a known pose (to be tracked).
+
+    Inside a :class:`Mapper`: refine_pose (its pose is refined with the map when
+    ``MapperConfig.pose_refine``); tag (the caller's frame id, reported with refined poses);
+    fp (8,): per-frame parameters being optimised (a camera-frame se(3) increment not yet folded
+    into ``viewmat``, log colour gain, colour bias)."""
 
     rgb: np.ndarray
     depth: np.ndarray
     viewmat: np.ndarray | None
+    refine_pose: bool = False
+    tag: int | None = None
+    fix_exposure: bool = False
+    fp: np.ndarray = field(default_factory=lambda: np.zeros(8, np.float32))
+
+    @property
+    def exposure(self) -> tuple[float, float]:
+        """(gain, bias) of the frame's fitted affine colour: observed ~ gain * render + bias."""
+        return float(np.exp(self.fp[6])), float(self.fp[7])
 
 
 _ssim_stats_jit = jax.jit(ssim_stats)
@@ -144,7 +175,9 @@ class Mapper:
             raise ValueError(f"K must be (3, 3), got {self.K.shape}")
         self.W, self.H = int(width), int(height)
         self.map = empty_map(self.cfg.initial_capacity, self.cfg.isotropic)
-        self.tx, self._step = _optimiser_and_step(self.cfg, self.K, self.W, self.H)
+        self.tx, self._step, self._step_fp = _optimiser_and_step(self.cfg, self.K, self.W, self.H)
+        c = self.cfg
+        self._fp_lrs = np.array([c.pose_lr_rot] * 3 + [c.pose_lr_trans] * 3 + [c.exposure_lr] * 2, np.float32)
         self.opt_state = self.tx.init(self.map.params())
         self.keyframes: list[Frame] = []
         self.n_frames = 0
@@ -156,7 +189,7 @@ class Mapper:
         cached = getattr(f, "_dev", None)
         if cached is None:
             rgb = jnp.asarray(f.rgb)
-            cached = (rgb, _ssim_stats_jit(rgb), jnp.asarray(f.depth), jnp.asarray(f.viewmat))
+            cached = (rgb, _ssim_stats_jit(rgb), jnp.asarray(f.depth))
             f._dev = cached
         return cached
 
@@ -166,11 +199,14 @@ class Mapper:
         img, dep, alp = render_map(self.map, viewmat, self.K, self.W, self.H)
         return np.asarray(img), np.asarray(dep)[..., 0], np.asarray(alp)[..., 0]
 
-    def update(self, rgb, depth, viewmat) -> dict:
+    def update(self, rgb, depth, viewmat, *, refine_pose: bool = False, tag: int | None = None) -> dict:
         """Add one posed RGB-D frame: densify, optimise over the keyframe window, prune.
 
         rgb (H, W, 3) float in [0, 1]; depth (H, W) metres, 0 = invalid; viewmat (4, 4)
-        world-to-camera. Returns stats: added, pruned, n_gaussians, loss.
+        world-to-camera. refine_pose: the pose is an estimate (tracking) that
+        ``MapperConfig.pose_refine`` may refine, now and while the frame is a keyframe; tag: the
+        caller's id of the frame. Returns stats: added, pruned, n_gaussians, loss, viewmat (the
+        frame's pose after this update), poses ({tag: viewmat} of the window's tagged frames).
         """
         rgb = np.asarray(rgb, np.float32)
         depth = np.asarray(depth, np.float32)
@@ -184,7 +220,8 @@ class Mapper:
         cfg = self.cfg
         if cfg.min_depth > 0 or np.isfinite(cfg.max_depth) or cfg.depth_edge_rel > 0:
             depth = clean_depth(depth, cfg.min_depth, cfg.max_depth, cfg.depth_edge_rel)
-        frame = Frame(rgb, depth, viewmat)
+        frame = Frame(rgb, depth, viewmat, refine_pose=bool(refine_pose), tag=tag,
+                      fix_exposure=self.n_frames == 0)
         # 1. densify where the map is missing (eq 10)
         if self.map.n_active:
             _, dhat, alpha = self.render(viewmat)
@@ -208,7 +245,7 @@ class Mapper:
         n_cur = int(round(cfg.current_frac * iters))
         picks = [len(dev) - 1] * n_cur + [int(i) for i in self.rng.integers(0, len(dev), iters - n_cur)]
         self.rng.shuffle(picks)
-        self._optimise(dev, picks, [f.viewmat for f in window])
+        self._optimise(dev, picks, window)
         # 4. prune
         params, active = self.map.params(), self.map.active
         opac = np.asarray(jax.nn.sigmoid(params["opacity_logits"]))
@@ -219,7 +256,8 @@ class Mapper:
         if pruned:
             self.map, self.opt_state = compact(self.map, self.opt_state, keep)
         return {"added": int(new["means"].shape[0]), "pruned": pruned, "n_gaussians": self.map.n_active,
-                "loss": self.last_loss}
+                "loss": self.last_loss, "viewmat": frame.viewmat,
+                "poses": {f.tag: f.viewmat for f in window if f.tag is not None and f.refine_pose}}
 
     def refine(self, iters: int) -> float:
         """Run ``iters`` more Adam steps on keyframes drawn uniformly (no densify or prune), e.g.
@@ -229,12 +267,12 @@ class Mapper:
         if not self.keyframes or iters == 0:
             return self.last_loss
         dev = [self._device_frame(f) for f in self.keyframes]
-        self._optimise(dev, [int(i) for i in self.rng.integers(0, len(dev), iters)],
-                       [f.viewmat for f in self.keyframes])
+        self._optimise(dev, [int(i) for i in self.rng.integers(0, len(dev), iters)], self.keyframes)
         return self.last_loss
 
-    def _optimise(self, dev: list, picks: list[int], viewmats: list) -> None:
-        """Adam steps on the frames ``dev[i] for i in picks``.
+    def _optimise(self, dev: list, picks: list[int], frames: list[Frame]) -> None:
+        """Adam steps on the frames ``dev[i] for i in picks`` (``frames[i]`` their Frame: pose,
+        per-frame parameters).
 
         With ``submap`` the steps run on the Gaussians that the frames can see (means inside
         one of the views, grown by ``submap_margin`` of the image), gathered into a
@@ -245,19 +283,39 @@ class Mapper:
         if not picks:
             return
         loss = jnp.nan
-        rows = self._visible_rows(viewmats) if self.cfg.submap else None
+        rows = self._visible_rows([f.viewmat for f in frames]) if self.cfg.submap else None
         if rows is None:
             params, active, opt_state = self.map.params(), self.map.active, self.opt_state
         else:
             params, active, opt_state, cap = _gather_rows(self.map, self.opt_state, rows)
+        cfg = self.cfg
         for i in picks:
-            r, s, d, v = dev[i]
-            params, opt_state, loss = self._step(params, active, opt_state, r, s, d, v)
+            r, s, d = dev[i]
+            f = frames[i]
+            mask = self._fp_mask(f)
+            if mask is None:
+                params, opt_state, loss = self._step(params, active, opt_state, r, s, d, jnp.asarray(f.viewmat))
+                continue
+            params, opt_state, loss, g = self._step_fp(params, active, opt_state, jnp.asarray(f.fp), r, s, d,
+                                                       jnp.asarray(f.viewmat))
+            _fp_adam(f, np.asarray(g) * mask, self._fp_lrs)
+        for f in frames:  # fold the pose increments into the poses (the Adam moments stay)
+            if np.any(f.fp[:6]):
+                f.viewmat = np.asarray(_pose_apply(jnp.asarray(f.viewmat), jnp.asarray(f.fp[:6])), np.float32)
+                f.fp[:6] = 0.0
         if rows is None:
             self.map, self.opt_state = self.map.with_params(params), opt_state
         else:
             self.map, self.opt_state = _scatter_rows(self.map, self.opt_state, rows, params, opt_state, cap)
         self.last_loss = float(loss)
+
+    def _fp_mask(self, f: Frame) -> np.ndarray | None:
+        """Which of the frame's 8 parameters are free (None: none)."""
+        pose = self.cfg.pose_refine and f.refine_pose
+        expo = self.cfg.exposure and not f.fix_exposure
+        if not (pose or expo):
+            return None
+        return np.array([pose] * 6 + [expo] * 2, np.float32)
 
     def _visible_rows(self, viewmats: list) -> np.ndarray | None:
         """Rows of active Gaussians whose means fall in one of the views (None: use them all)."""
@@ -305,12 +363,17 @@ class Mapper:
         chosen = sorted(order[: n - 1] + [len(self.keyframes) - 1])
         return [self.keyframes[i] for i in chosen]
 
-    def evaluate(self, frames) -> dict:
+    def evaluate(self, frames, *, exposure: bool = False) -> dict:
         """Mean PSNR (dB, all pixels), ``psnr_valid`` (dB, pixels with valid observed depth: beyond
-        the sensor range nothing can be mapped), SSIM and depth L1 (m, valid pixels) over ``frames``."""
+        the sensor range nothing can be mapped), SSIM and depth L1 (m, valid pixels) over ``frames``.
+        exposure: apply each frame's fitted affine colour (:attr:`Frame.exposure`, e.g. the
+        keyframes') to the render first."""
         ps, pv, ss, dl = [], [], [], []
         for f in frames:
             img, dep, _ = render_map(self.map, f.viewmat, self.K, self.W, self.H)
+            if exposure:
+                gain, bias = f.exposure
+                img = img * gain + bias
             valid = (np.asarray(f.depth) > 0)[..., None]
             ps.append(float(psnr(img, f.rgb)))
             pv.append(float(psnr(img, f.rgb, valid)))
@@ -364,7 +427,7 @@ _STEPS: dict = {}
 
 def _optimiser_and_step(cfg: MapperConfig, K: np.ndarray, W: int, H: int):
     key = (tuple(sorted(cfg.lr.items())), cfg.lambda_p, cfg.w_l1, cfg.lambda_g, cfg.isotropic,
-           np.asarray(K, np.float32).tobytes(), W, H)
+           np.asarray(K, np.float32).tobytes(), W, H, cfg.pose_planar)
     if key in _STEPS:
         return _STEPS[key]
     tx = optax.multi_transform({k: optax.adam(v) for k, v in cfg.lr.items()}, {k: k for k in cfg.lr})
@@ -382,10 +445,51 @@ def _optimiser_and_step(cfg: MapperConfig, K: np.ndarray, W: int, H: int):
         updates, opt_state = tx.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
+    planar = cfg.pose_planar
+
+    def loss_fp(params, fp, active, rgb, stats, depth, viewmat):
+        vm = _pose_apply(viewmat, fp[:6], planar)
+        out = rasterize(*render_args(params, active, iso), vm, Kj, W, H, render_mode="RGB+D", validate=False)
+        image = out.image * jnp.exp(fp[6]) + fp[7]
+        return mapping_loss(image, out.depth, rgb, depth, lambda_p=lambda_p, w_l1=w_l1, lambda_g=lambda_g,
+                            rgb_stats=stats)
+
+    @jax.jit
+    def step_fp(params, active, opt_state, fp, rgb, stats, depth, viewmat):
+        """The step of ``step`` that also returns the gradient of the frame's parameters fp (8,)."""
+        loss, (grads, g_fp) = jax.value_and_grad(loss_fp, argnums=(0, 1))(params, fp, active, rgb, stats, depth,
+                                                                            viewmat)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss, jnp.where(jnp.isfinite(g_fp), g_fp, 0.0)
+
     if len(_STEPS) > 16:  # many cameras in one process: keep the cache bounded
         _STEPS.pop(next(iter(_STEPS)))
-    _STEPS[key] = (tx, step)
-    return tx, step
+    _STEPS[key] = (tx, step, step_fp)
+    return tx, step, step_fp
+
+
+def _pose_apply(viewmat, xi, planar: bool = False):
+    """``exp(xi) @ viewmat`` (see :func:`splatsearch.slam.perturb_viewmat`); with ``planar`` the
+    increment is first projected on a ground robot's motions (:func:`splatsearch.slam.planar_basis`)."""
+    from splatsearch.slam import perturb_viewmat, planar_basis
+
+    if planar:
+        B = planar_basis(viewmat)
+        xi = B @ (B.T @ xi)
+    return perturb_viewmat(viewmat, xi)
+
+
+def _fp_adam(f: Frame, g: np.ndarray, lrs: np.ndarray, b1: float = 0.9, b2: float = 0.999,
+             eps: float = 1e-8) -> None:
+    """One Adam step on a frame's parameters ``f.fp`` (its moments live on the frame)."""
+    st = getattr(f, "_fp_adam", None)
+    if st is None:
+        st = f._fp_adam = [np.zeros(8, np.float32), np.zeros(8, np.float32), 0]
+    st[2] += 1
+    st[0] = b1 * st[0] + (1 - b1) * g
+    st[1] = b2 * st[1] + (1 - b2) * g * g
+    mhat, vhat = st[0] / (1 - b1 ** st[2]), st[1] / (1 - b2 ** st[2])
+    f.fp = (f.fp - lrs * mhat / (np.sqrt(vhat) + eps) * (g != 0)).astype(np.float32)
 
 
 def _backproject(depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, step: int = 8) -> np.ndarray:

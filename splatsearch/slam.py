@@ -55,6 +55,36 @@ def perturb_viewmat(viewmat, xi):
     return T @ viewmat
 
 
+def planar_basis(viewmat):
+    """(6, 3) basis of the camera-frame se(3) increments (rotation vector, translation) that move
+    a camera in the world's horizontal plane (world z up): a turn about the vertical through the
+    camera centre and the two horizontal translations. ``perturb_viewmat(viewmat, B @ p)`` keeps
+    the camera's height, roll and pitch for any p (3,)."""
+    R = viewmat[:3, :3]
+    up = R[:, 2]  # world z in camera coordinates
+    ex = R[:, 0] - up * jnp.dot(R[:, 0], up)  # world x, y in camera coordinates, kept normal to up
+    ey = R[:, 1] - up * jnp.dot(R[:, 1], up)
+    ex = ex / (jnp.linalg.norm(ex) + 1e-12)
+    ey = ey - ex * jnp.dot(ex, ey)
+    ey = ey / (jnp.linalg.norm(ey) + 1e-12)
+    z3 = jnp.zeros(3, viewmat.dtype)
+    cols = [jnp.concatenate([up, z3]), jnp.concatenate([z3, ex]), jnp.concatenate([z3, ey])]
+    return jnp.stack(cols, axis=1)
+
+
+def project_planar(viewmat, ref) -> np.ndarray:
+    """``viewmat`` (4, 4) moved onto the planar motions of ``ref``: the camera-frame increment
+    from ``ref`` is projected on :func:`planar_basis` (a ground robot cannot change its height,
+    roll or pitch)."""
+    ref = np.asarray(ref, np.float64)
+    d = np.asarray(viewmat, np.float64) @ np.linalg.inv(ref)
+    w = cv2.Rodrigues(d[:3, :3])[0].ravel()
+    xi = np.concatenate([w, d[:3, 3]])
+    B = np.asarray(planar_basis(jnp.asarray(ref, jnp.float32)), np.float64)
+    return np.asarray(perturb_viewmat(jnp.asarray(ref, jnp.float32), jnp.asarray(B @ (B.T @ xi), jnp.float32)),
+                      np.float32)
+
+
 def pose_distance(vm_a, vm_b) -> tuple[float, float]:
     """(rotation angle in rad, camera-centre distance in m) between two world-to-camera poses."""
     a, b = np.asarray(vm_a, np.float64), np.asarray(vm_b, np.float64)
@@ -73,8 +103,10 @@ class TrackerConfig:
     """Tracking settings.
 
     iters: Adam steps per frame. lr_rot (rad), lr_trans (m): Adam step sizes of the se(3)
-    increment. sil_thresh: silhouette above which a pixel is trusted. w_color: weight of the
-    colour L1 (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are
+    increment. lr_final: the step sizes decay exponentially to this fraction of themselves by the
+    last step (1: constant); Adam's steps keep their size near the optimum, so a constant step
+    leaves the pose jittering by about one step. sil_thresh: silhouette above which a pixel is
+    trusted. w_color: weight of the colour L1 (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are
     left out (0: keep all). min_valid_frac: fewer trusted pixels than this fraction of the image
     means the map does not cover the view: tracking is skipped. diverge_ratio, max_rot (rad),
     max_trans (m): divergence tests (see the module docstring). submap_margin: Gaussians whose
@@ -84,12 +116,16 @@ class TrackerConfig:
     render of the map at the initial pose to the frame with OpenCV's multi-scale RGB-D odometry
     (``cv2.Odometry``: ICP + photometric, else photometric alone) and start from its pose when it succeeds within
     ``max_rot`` / ``max_trans``; one forward render and a few ms of CPU, so fewer Adam steps
-    are needed.
+    are needed. planar: a ground robot's camera moves in the world's horizontal plane and turns
+    about the world's vertical axis (world z up): the update is restricted to those 3 degrees
+    of freedom (rotation about world z through the camera centre, translation along world x, y),
+    so height, roll and pitch keep the initial guess's values and cannot drift.
     """
 
     iters: int = 40
     lr_rot: float = 2e-3
     lr_trans: float = 2e-3
+    lr_final: float = 1.0
     sil_thresh: float = 0.99
     w_color: float = 0.5
     outlier_k: float = 10.0
@@ -100,12 +136,15 @@ class TrackerConfig:
     submap_margin: float = 0.25
     downscale: int = 1
     rgbd_odometry: bool = False
+    planar: bool = False
 
     def validate(self) -> None:
         if self.iters < 1:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
         if not (self.lr_rot > 0 and self.lr_trans > 0):
             raise ValueError("lr_rot and lr_trans must be > 0")
+        if not 0 < self.lr_final <= 1:
+            raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
         if self.downscale < 1:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not 0 < self.sil_thresh < 1:
@@ -133,11 +172,13 @@ _TRACK_FNS: dict = {}
 
 def _track_fn(K: np.ndarray, W: int, H: int, cfg: TrackerConfig):
     key = (np.asarray(K, np.float32).tobytes(), W, H, cfg.iters, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh,
-           cfg.w_color, cfg.outlier_k)
+           cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     Kj = jnp.asarray(K, jnp.float32)
-    lrs = jnp.array([cfg.lr_rot] * 3 + [cfg.lr_trans] * 3, jnp.float32)
+    planar = cfg.planar
+    lrs = jnp.array([cfg.lr_rot] + [cfg.lr_trans] * 2 if planar else [cfg.lr_rot] * 3 + [cfg.lr_trans] * 3,
+                    jnp.float32)
     adam = optax.adam(1.0)  # unit steps, scaled per component by ``lrs``
     sil, w_c, ok_k = cfg.sil_thresh, cfg.w_color, cfg.outlier_k
 
@@ -153,31 +194,37 @@ def _track_fn(K: np.ndarray, W: int, H: int, cfg: TrackerConfig):
         c_err = jnp.abs(out.image - rgb).sum(-1)
         return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n, mf.mean()
 
-    vg = jax.value_and_grad(loss_fn, has_aux=True)
+    def loss_p(p, margs, rgb, depth, vm0, basis):
+        return loss_fn(basis @ p, margs, rgb, depth, vm0)
+
+    vg = jax.value_and_grad(loss_p, has_aux=True)
 
     @jax.jit
     def run(margs, rgb, depth, vm0):
-        xi0 = jnp.zeros(6, jnp.float32)
+        basis = planar_basis(vm0) if planar else jnp.eye(6, dtype=jnp.float32)
+        xi0 = jnp.zeros(basis.shape[1], jnp.float32)
 
-        def body(carry, _):
+        decay = jnp.log(jnp.float32(cfg.lr_final)) / max(cfg.iters - 1, 1)
+
+        def body(carry, k):
             xi, st, best_xi, best_loss = carry
-            (loss, _), g = vg(xi, margs, rgb, depth, vm0)
+            (loss, _), g = vg(xi, margs, rgb, depth, vm0, basis)
             better = loss < best_loss  # NaN compares False: a NaN step is never kept
             best_xi = jnp.where(better, xi, best_xi)
             best_loss = jnp.where(better, loss, best_loss)
             g = jnp.where(jnp.isfinite(g), g, 0.0)
             upd, st = adam.update(g, st)
-            return (xi + upd * lrs, st, best_xi, best_loss), loss
+            return (xi + upd * lrs * jnp.exp(decay * k), st, best_xi, best_loss), loss
 
-        loss0, frac0 = loss_fn(xi0, margs, rgb, depth, vm0)
+        loss0, frac0 = loss_p(xi0, margs, rgb, depth, vm0, basis)
         carry = (xi0, adam.init(xi0), xi0, jnp.asarray(jnp.inf, jnp.float32))
-        (xi, st, best_xi, best_loss), losses = jax.lax.scan(body, carry, None, length=cfg.iters)
+        (xi, st, best_xi, best_loss), losses = jax.lax.scan(body, carry, jnp.arange(cfg.iters, dtype=jnp.float32))
         # the last update has not been scored yet
-        last, _ = loss_fn(xi, margs, rgb, depth, vm0)
+        last, _ = loss_p(xi, margs, rgb, depth, vm0, basis)
         better = last < best_loss
         best_xi = jnp.where(better, xi, best_xi)
         best_loss = jnp.where(better, last, best_loss)
-        return perturb_viewmat(vm0, best_xi), best_loss, loss0, frac0
+        return perturb_viewmat(vm0, basis @ best_xi), best_loss, loss0, frac0
 
     if len(_TRACK_FNS) > 8:
         _TRACK_FNS.pop(next(iter(_TRACK_FNS)))
@@ -279,7 +326,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         vm_odo = odometry_init(margs, rgb, depth, vm0, K, int(width), int(height), max_rot=cfg.max_rot,
                                max_trans=cfg.max_trans)
         if vm_odo is not None:
-            vm_start = vm_odo
+            vm_start = project_planar(vm_odo, vm0) if cfg.planar else vm_odo
     run = _track_fn(K, int(width), int(height), cfg)
     vm, loss, loss0, frac0 = run(margs, jnp.asarray(rgb, jnp.float32), jnp.asarray(depth, jnp.float32),
                                  jnp.asarray(vm_start))
@@ -422,9 +469,24 @@ class SLAM:
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat
         t0 = time.perf_counter()
-        stats = self.mapper.update(rgb, depth, pose)
+        stats = self.mapper.update(rgb, depth, pose, refine_pose=self.track_enabled and not first, tag=i)
+        self._apply_refined(stats.pop("poses", {}))
+        pose = np.asarray(stats.pop("viewmat", pose), np.float32)
         return self._finish(FrameResult(i, pose, "first" if first else "mapped", tr, t_track,
                                         time.perf_counter() - t0, stats))
+
+    def _apply_refined(self, poses: dict) -> None:
+        """Write poses refined by the mapper (``MapperConfig.pose_refine``) into the trajectory."""
+        for tag, vm in poses.items():
+            if 0 <= tag < len(self.poses) and np.all(np.isfinite(vm)):
+                self.poses[tag] = np.asarray(vm, np.float32)
+                self.results[tag].viewmat = self.poses[tag]
+
+    def refine(self, iters: int) -> float:
+        """``Mapper.refine`` over the keyframes; poses it refines go into the trajectory."""
+        loss = self.mapper.refine(iters)
+        self._apply_refined({f.tag: f.viewmat for f in self.mapper.keyframes if f.tag is not None and f.refine_pose})
+        return loss
 
     def _finish(self, res: FrameResult) -> FrameResult:
         self.poses.append(np.asarray(res.viewmat, np.float32))
