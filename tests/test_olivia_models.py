@@ -325,3 +325,32 @@ def test_select_logits_adds_the_tpn_scores():
     assert int(jnp.argmax(select_logits(tsm_l, tpn_s, 0.0))) in (0, 1)
     assert int(jnp.argmax(select_logits(tsm_l, tpn_s, 0.3))) == 1  # the TPN breaks the tie
     assert int(jnp.argmax(select_logits(tsm_l, tpn_s, 5.0))) == 2  # and outweighs the TSM when trusted more
+
+
+def test_consistency_cost_holds_to_the_followed_plan_but_not_to_a_stop():
+    from splatsearch.social.olivia.planner import consistency_cost
+
+    xs = 0.24 * np.arange(1, HORIZON + 1)  # 0.6 m/s, poses every 0.4 s
+    left = np.stack([xs, 0.1 * xs], -1)
+    right = np.stack([xs, -0.1 * xs], -1)
+    prev = np.vstack([[0.0, 0.0], left])  # the followed plan went left
+    c = consistency_cost(np.stack([left, right]), prev, 0.0)
+    assert c[0] == pytest.approx(0.0, abs=1e-12) and c[1] > 0.05
+    # read at the same instants 0.2 s later: a plan that keeps the pace costs little
+    shifted = left + np.array([0.12, 0.012])
+    assert consistency_cost(shifted[None], prev, 0.2)[0] < 3e-3  # (the last pose is held at its end)
+    stop = np.zeros((HORIZON + 1, 2))
+    assert np.all(consistency_cost(np.stack([left, right]), stop, 0.2) == 0)  # waiting commits to nothing
+    assert np.all(consistency_cost(np.stack([left, right]), None, 0.2) == 0)
+
+
+def test_safety_cost_penalises_the_plan_into_a_person():
+    from splatsearch.social.olivia.planner import safety_cost
+
+    xs = 0.24 * np.arange(1, HORIZON + 1)
+    straight = np.stack([xs, 0 * xs], -1)
+    aside = np.stack([xs, np.minimum(0.6 * xs, 1.5)], -1)
+    # one person walking toward the robot along its line at 1 m/s, 3 m ahead
+    c = safety_cost(np.stack([straight, aside]), np.array([[3.0, 0.0]]), np.array([[-1.0, 0.0]]), 0.45)
+    assert c[0] > 0.5 and c[1] < 0.25 * c[0]
+    assert np.all(safety_cost(np.stack([straight, aside]), np.zeros((0, 2)), np.zeros((0, 2)), 0.45) == 0)
