@@ -18,7 +18,8 @@ import pytest
 from splatsearch.social.convoi.controller import follow_step, follower_init
 from splatsearch.social.convoi.geometry import robot_to_world
 from splatsearch.social.olivia.llu import TextDB
-from splatsearch.social.olivia.planner import OliviaConfig, OliviaNav
+from splatsearch.social.convoi.perception import visible_people
+from splatsearch.social.olivia.planner import OliviaConfig, OliviaNav, consistency_cost, safety_cost
 from splatsearch.social.olivia.features import observe
 from splatsearch.social.convoi.scenarios import make_scenario
 
@@ -51,12 +52,20 @@ def setup():
     pose = np.asarray(scn.start, np.float32)
     people = np.asarray(scn.peds.pos)
     path = scn.global_path()
+    caps, valid = (jnp.asarray(a) for a in scn.padded_capsules())
+    act = jnp.asarray(scn.peds.active)
 
     def cycle():
         obs = observe(scn, pose, people, pose, people, path)
         res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal)
-        tr = res.trajs[res.index]
-        traj = np.vstack([pose[None, :2], robot_to_world(tr[:, :2].astype(np.float64), pose.astype(np.float64))])
+        # the selection's costs, as in run_olivia_episode (against the same plan as "followed")
+        cand = np.stack([robot_to_world(q[:, :2].astype(np.float64), pose.astype(np.float64)) for q in res.trajs])
+        prev = np.vstack([pose[None, :2], cand[res.index]])
+        seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people), act, caps, valid))
+        score = (res.logits - planner.cfg.consistency * consistency_cost(cand, prev, 0.2)
+                 - planner.cfg.safety * safety_cost(cand, people[seen], np.zeros_like(people[seen]),
+                                                    planner.cfg.safety_margin))
+        traj = np.vstack([pose[None, :2], cand[int(np.argmax(score))]])
         cmd, _ = follow_step(planner.cfg.follower, follower_init(), jnp.asarray(pose), jnp.asarray(traj, jnp.float32),
                              0.1)
         return np.asarray(cmd)

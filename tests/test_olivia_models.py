@@ -282,3 +282,75 @@ def test_retrieve_votes_on_the_action():
     j, votes = retrieve(db, acts, e, 4, 0.05)
     assert int(j) == 1 and int(jnp.argmax(votes)) == 2  # the most similar keep_left caption
     assert float(votes.sum()) == pytest.approx(1.0, rel=1e-5)
+
+
+def test_retrieve_prior_votes_carry_the_action():
+    from splatsearch.social.olivia.planner import N_VOTES, retrieve
+
+    emb = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
+    db, acts = jnp.asarray(emb), jnp.asarray([5, 1], jnp.int32)
+    e = jnp.asarray([1.0, 0.1], F32)
+    j, votes = retrieve(db, acts, e, 1, 0.05)
+    assert int(j) == 0  # alone, this view retrieves the "yield" caption
+    prior = jnp.zeros(N_VOTES, F32).at[1].set(3.0)  # three earlier views voted keep_right
+    j, votes = retrieve(db, acts, e, 1, 0.05, prior)
+    assert int(j) == 1 and float(votes[1]) == pytest.approx(3.0) and float(votes[5]) == pytest.approx(1.0)
+
+
+def test_tpn_mode_scores_and_their_loss(tpn_setup):
+    params, (e, pts, v, g), _ = tpn_setup
+    on = jnp.ones(2, bool)
+    trajs, scores = tpn.TPN(SMALL_TPN).apply({"params": params}, e, pts, v, g, on, on, with_scores=True)
+    assert trajs.shape == (2, SMALL_TPN.K, HORIZON, 3) and scores.shape == (2, SMALL_TPN.K)
+    assert scores.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(scores)))
+    # the score loss is the cross-entropy against the head closest to the target
+    target = trajs[:, 1] + 0.01
+    k = np.asarray(tpn.closest_head(trajs, target))
+    assert k.tolist() == [1, 1]
+    want = -np.mean(np.asarray(jax.nn.log_softmax(scores, -1))[np.arange(2), k])
+    assert float(tpn.score_loss(scores, trajs, target)) == pytest.approx(want, rel=1e-5)
+    # a checkpoint without the head (score=False) still plans, with flat scores
+    c = tpn.TPNConfig(**{**SMALL_TPN.__dict__, "score": False})
+    p0 = tpn.init_tpn(jax.random.PRNGKey(2), c)
+    assert "score_ffn" not in p0
+    _, s0 = tpn.TPN(c).apply({"params": p0}, e, pts, v, g, on, on, with_scores=True)
+    assert np.all(np.asarray(s0) == 0)
+
+
+def test_select_logits_adds_the_tpn_scores():
+    from splatsearch.social.olivia.planner import select_logits
+
+    tsm_l = jnp.asarray([[2.0, 2.0, -5.0]])  # the caption's action: plans 0 and 1 alike
+    tpn_s = jnp.asarray([[0.0, 3.0, 9.0]])   # the TPN prefers plan 2, then 1
+    assert int(jnp.argmax(select_logits(tsm_l, tpn_s, 0.0))) in (0, 1)
+    assert int(jnp.argmax(select_logits(tsm_l, tpn_s, 0.3))) == 1  # the TPN breaks the tie
+    assert int(jnp.argmax(select_logits(tsm_l, tpn_s, 5.0))) == 2  # and outweighs the TSM when trusted more
+
+
+def test_consistency_cost_holds_to_the_followed_plan_but_not_to_a_stop():
+    from splatsearch.social.olivia.planner import consistency_cost
+
+    xs = 0.24 * np.arange(1, HORIZON + 1)  # 0.6 m/s, poses every 0.4 s
+    left = np.stack([xs, 0.1 * xs], -1)
+    right = np.stack([xs, -0.1 * xs], -1)
+    prev = np.vstack([[0.0, 0.0], left])  # the followed plan went left
+    c = consistency_cost(np.stack([left, right]), prev, 0.0)
+    assert c[0] == pytest.approx(0.0, abs=1e-12) and c[1] > 0.05
+    # read at the same instants 0.2 s later: a plan that keeps the pace costs little
+    shifted = left + np.array([0.12, 0.012])
+    assert consistency_cost(shifted[None], prev, 0.2)[0] < 3e-3  # (the last pose is held at its end)
+    stop = np.zeros((HORIZON + 1, 2))
+    assert np.all(consistency_cost(np.stack([left, right]), stop, 0.2) == 0)  # waiting commits to nothing
+    assert np.all(consistency_cost(np.stack([left, right]), None, 0.2) == 0)
+
+
+def test_safety_cost_penalises_the_plan_into_a_person():
+    from splatsearch.social.olivia.planner import safety_cost
+
+    xs = 0.24 * np.arange(1, HORIZON + 1)
+    straight = np.stack([xs, 0 * xs], -1)
+    aside = np.stack([xs, np.minimum(0.6 * xs, 1.5)], -1)
+    # one person walking toward the robot along its line at 1 m/s, 3 m ahead
+    c = safety_cost(np.stack([straight, aside]), np.array([[3.0, 0.0]]), np.array([[-1.0, 0.0]]), 0.45)
+    assert c[0] > 0.5 and c[1] < 0.25 * c[0]
+    assert np.all(safety_cost(np.stack([straight, aside]), np.zeros((0, 2)), np.zeros((0, 2)), 0.45) == 0)

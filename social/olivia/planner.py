@@ -31,13 +31,16 @@ from ..convoi.dwa import step_unicycle
 from ..convoi.geometry import F32, field_lookup, robot_to_world
 from .llu import LLUBuffer, TextDB
 from .captions import ACTIONS, caption_scene
-from .features import expert_action, observe
+from .features import FUTURE_STRIDE, HORIZON, expert_action, observe
+from ..convoi.perception import visible_people
 from .lidar import PREV_STEPS
 from ..convoi.runner import GOAL_TOLERANCE, EpisodeResult, make_world
 from .sc_clip import SCCLIP, SCCLIPConfig, normalize
-from ..convoi.scenarios import ROBOT_RADIUS, Scenario
+from ..convoi.scenarios import PERSON_RADIUS, ROBOT_RADIUS, Scenario
 from .tpn import TPN, TPNConfig
 from .tsm import TSM, TSMConfig
+
+WALL_MARGIN = 0.05  # m: the clearance a plan keeps from the map (the NC cuts corners by about this)
 
 VARIANTS = ("olivia", "no_image", "no_text", "no_lidar")
 VARIANT_LABELS = {"olivia": "OLiVia-Nav", "no_image": "OLiVia-Nav w/o E_I", "no_text": "OLiVia-Nav w/o E_T",
@@ -55,12 +58,20 @@ class OliviaConfig:
     replan_every: int = 2  # 5 Hz at dt = 0.1 s (the thesis' planning rate)
     retrieve_k: int = 1  # D_T neighbours voting on the retrieved E_T's action (1: the thesis' nearest caption)
     retrieve_tau: float = 0.05  # temperature of the votes' softmax over cosine similarities
+    vote_memory: float = 0.0  # decay per plan of the accumulated retrieval votes (0: each view alone)
+    score_weight: float = 1.0  # weight of the TPN's mode log-probabilities added to the TSM's (0: TSM alone)
+    consistency: float = 30.0  # 1/m²: penalty on a plan's mean squared distance from the one being followed
+    safety: float = 30.0  # 1/m²: penalty on a plan's intrusion into the people's predicted space (0: off)
+    safety_margin: float = 0.45  # m, edge to edge: the intimate zone a plan must keep from everyone seen
+    text_gate: float = 0.9  # E_T is used only when the retrieved caption's cosine similarity to E_I reaches it
+    arrive_radius: float = 1.0  # m: within it the NC drives straight at the goal (0: off)
 
 
 N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
 
 
-def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau: float) -> tuple[jax.Array, jax.Array]:
+def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau: float,
+             prior: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """(index into D_T of the retrieved E_T, vote vector (N_VOTES,)) for the unit E_I (D,);
     ``db`` (M, D) unit caption embeddings, ``db_actions`` (M,) int action of each caption (-1: none).
 
@@ -70,31 +81,55 @@ def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau
 
     A single nearest caption often describes the people and the layout right but carries the
     wrong action; on held-out views the vote of ~10 neighbours recovers the action more often
-    (0.73 vs 0.65), though in closed loop it did not drive better, hence not the default."""
+    (0.73 vs 0.65), though in closed loop it did not drive better, hence not the default.
+
+    ``prior`` (N_VOTES,): votes carried over from the previous views (decayed by the caller), added
+    before the winning action is chosen; the returned vector includes them."""
     sim = db @ e_img
     top_s, top_i = jax.lax.top_k(sim, min(max(k, 1), db.shape[0]))
     bucket = jnp.where(db_actions < 0, N_VOTES - 1, db_actions)
     votes = jnp.zeros(N_VOTES, F32).at[bucket[top_i]].add(jax.nn.softmax(top_s / tau))
+    if prior is not None:
+        votes = votes + prior
     win = jnp.argmax(votes)
     return jnp.argmax(jnp.where(bucket == win, sim, -jnp.inf)), votes
 
 
 @partial(jax.jit, static_argnames=("cfg", "use_image", "use_lidar", "use_text"))
-def _plan(clip_p, tpn_p, tsm_p, db, db_actions, image, points, valid, goal, cfg: OliviaConfig, use_image: bool,
+def _plan(clip_p, tpn_p, tsm_p, db, db_actions, image, points, valid, goal, prior, cfg: OliviaConfig, use_image: bool,
           use_lidar: bool, use_text: bool):
     e_i = normalize(SCCLIP(cfg.clip).apply({"params": clip_p}, image[None], method=SCCLIP.encode_image))
-    j, _ = retrieve(db, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau)
+    j, votes = retrieve(db, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau, cfg.vote_memory * prior)
     e_t = db[j][None]
-    trajs = TPN(cfg.tpn).apply({"params": tpn_p}, e_i, points[None], valid[None], goal[None],
-                               jnp.full((1,), use_image), jnp.full((1,), use_lidar))
+    sim = db[j] @ e_i[0]
+    # a caption retrieved with low similarity describes another scene (its action is right about
+    # half the time on held-out views); the TSM then ranks without E_T, as trained with text dropout
+    use_text = jnp.asarray(use_text) & (sim >= cfg.text_gate)
+    trajs, scores = TPN(cfg.tpn).apply({"params": tpn_p}, e_i, points[None], valid[None], goal[None],
+                                       jnp.full((1,), use_image), jnp.full((1,), use_lidar), with_scores=True)
     logits = TSM(cfg.tsm).apply({"params": tsm_p}, e_t, trajs, jnp.full((1,), use_text))
-    return trajs[0], logits[0], j, e_i[0]
+    logits = select_logits(logits, scores, cfg.score_weight)
+    return trajs[0], logits[0], j, e_i[0], votes, sim
+
+
+def select_logits(tsm_logits: jax.Array, tpn_scores: jax.Array, score_weight: float) -> jax.Array:
+    """The plan selection's log-scores (..., K): the TSM's log-probabilities (eq 7) plus
+    ``score_weight`` x the TPN's mode log-probabilities. The TSM ranks the plans by E_T alone and
+    follows the retrieved caption's action; the TPN's scores come from the LiDAR (both sweeps,
+    so the people's motion), the goal and E_I, and decide among plans the caption does not
+    separate, or against a caption D_T retrieved wrongly."""
+    out = jax.nn.log_softmax(tsm_logits, -1)
+    if score_weight:
+        out = out + score_weight * jax.nn.log_softmax(tpn_scores, -1)
+    return out
 
 
 @dataclass
 class PlanResult:
     """trajs: (K, horizon, 3) robot frame; logits: (K,); index: k selected; caption: the
-    retrieved long caption; action: its action; e_img: (D,) E_I."""
+    retrieved long caption; action: its action; e_img: (D,) E_I; votes: (N_VOTES,) the
+    retrieval's accumulated action votes (the next plan's ``prior``); similarity: cosine of E_I
+    and the retrieved E_T (E_T is used when it reaches ``cfg.text_gate``)."""
 
     trajs: np.ndarray
     logits: np.ndarray
@@ -102,6 +137,41 @@ class PlanResult:
     caption: str
     action: int
     e_img: np.ndarray
+    votes: np.ndarray | None = None
+    similarity: float = 1.0
+
+
+def consistency_cost(trajs_world: np.ndarray, prev_world: np.ndarray | None, elapsed: float,
+                     min_length: float = 0.6) -> np.ndarray:
+    """(K,) mean squared distance (m²) of each candidate plan ``trajs_world`` (K, horizon, 2)
+    (world, poses every FUTURE_STRIDE steps from now) from the plan being followed,
+    ``prev_world`` (1 + horizon, 2) (its start pose, then its poses), made ``elapsed`` s ago and
+    read at the same instants (held at its end). Zeros without a previous plan, and when it
+    was a stop (under ``min_length`` m): waiting commits to nothing, and holding to it would
+    keep the robot waiting."""
+    K, H = trajs_world.shape[:2]
+    if prev_world is None or np.sum(np.linalg.norm(np.diff(prev_world, axis=0), axis=1)) < min_length:
+        return np.zeros(K)
+    step = FUTURE_STRIDE * 0.1
+    tp = np.arange(len(prev_world)) * step
+    tq = np.minimum(elapsed + step * np.arange(1, H + 1), tp[-1])
+    ref = np.stack([np.interp(tq, tp, prev_world[:, 0]), np.interp(tq, tp, prev_world[:, 1])], -1)
+    return np.mean(np.sum((trajs_world - ref[None]) ** 2, -1), -1)
+
+
+def safety_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarray, margin: float) -> np.ndarray:
+    """(K,) intrusion of each plan ``trajs_world`` (K, horizon, 2) into the space of the people
+    seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2) m/s (constant velocity, as
+    the two LiDAR sweeps give it): the sum over the plan's poses of
+    ``max(0, margin - edge gap)²`` (m²), nearer poses weighing more (1 down to 0.5)."""
+    K, H = trajs_world.shape[:2]
+    if len(people) == 0:
+        return np.zeros(K)
+    tq = FUTURE_STRIDE * 0.1 * np.arange(1, H + 1)
+    pred = people[None] + tq[:, None, None] * people_vel[None]  # (H, P, 2)
+    gap = np.linalg.norm(trajs_world[:, :, None] - pred[None], axis=-1) - (ROBOT_RADIUS + PERSON_RADIUS)
+    w = np.linspace(1.0, 0.5, H)[None, :]
+    return np.sum(w * np.max(np.clip(margin - gap, 0.0, None), -1) ** 2, -1)
 
 
 class OliviaNav:
@@ -121,18 +191,20 @@ class OliviaNav:
     def with_variant(self, variant: str) -> "OliviaNav":
         return OliviaNav(self.params, self.db, self.cfg, variant)
 
-    def plan(self, image, points, points_valid, goal) -> PlanResult:
+    def plan(self, image, points, points_valid, goal, prior=None) -> PlanResult:
         """Plan from one observation: image (H, W, 3) float [0, 1] or uint8; points (N, 4);
-        points_valid (N,); goal (GOAL_DIM,)."""
+        points_valid (N,); goal (GOAL_DIM,); prior: (N_VOTES,) the previous plan's ``votes``
+        (used with ``cfg.vote_memory`` > 0; None: none)."""
         v = self.variant
-        trajs, logits, j, e_i = _plan(self.params["clip"], self.params["tpn"], self.params["tsm"], self._db,
-                                      self._db_actions, jnp.asarray(image), jnp.asarray(points, F32),
-                                      jnp.asarray(points_valid), jnp.asarray(goal, F32), self.cfg,
-                                      v != "no_image", v != "no_lidar", v != "no_text")
+        prior = jnp.zeros(N_VOTES, F32) if prior is None else jnp.asarray(prior, F32)
+        trajs, logits, j, e_i, votes, sim = _plan(self.params["clip"], self.params["tpn"], self.params["tsm"], self._db,
+                                             self._db_actions, jnp.asarray(image), jnp.asarray(points, F32),
+                                             jnp.asarray(points_valid), jnp.asarray(goal, F32), prior, self.cfg,
+                                             v != "no_image", v != "no_lidar", v != "no_text")
         j = int(j)
         logits = np.asarray(logits)
         return PlanResult(np.asarray(trajs), logits, int(np.argmax(logits)), self.db.captions[j],
-                          int(self.db.actions[j]), np.asarray(e_i))
+                          int(self.db.actions[j]), np.asarray(e_i), np.asarray(votes), float(sim))
 
 
 def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | None = None,
@@ -148,6 +220,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()
     caps, valid = jnp.asarray(caps), jnp.asarray(valid)
+    act = jnp.asarray(scn.peds.active)
     field = scn.field()
     path = scn.global_path()
     seed_key = jax.random.PRNGKey(scn.seed)
@@ -159,6 +232,8 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     ped_contacts = wall_hits = 0
     reached = False
     traj_world = None
+    votes = None
+    since = 0
     plan_s, n_plans = 0.0, 0
     from ..convoi.runner import REFERENCE
 
@@ -168,9 +243,27 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
             tp = max(len(poses) - 1 - PREV_STEPS, 0)
             t0 = time.perf_counter()
             obs = observe(scn, pose, people[-1], poses[tp], people[tp], path)
-            res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal)
-            tr = res.trajs[res.index]
-            traj_world = np.vstack([pose[None, :2], robot_to_world(tr[:, :2].astype(np.float64), pose.astype(np.float64))])
+            res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal, votes)
+            votes = res.votes
+            cand = np.stack([robot_to_world(q[:, :2].astype(np.float64), pose.astype(np.float64)) for q in res.trajs])
+            score = np.asarray(res.logits, np.float64)
+            if cfg.consistency > 0 and traj_world is not None:
+                # a plan is a commitment: switching sides on every cycle walks into what both avoid
+                score = score - cfg.consistency * consistency_cost(cand, traj_world, since * scn.dt)
+            if cfg.safety > 0:
+                seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
+                vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
+                score = score - cfg.safety * safety_cost(cand, people[-1][seen], vel[seen], cfg.safety_margin)
+                # and the map: a plan through a door post is refused move by move, forever
+                clr = np.asarray(field_lookup(field, jnp.asarray(cand, F32)))
+                score = score - cfg.safety * np.sum(np.clip(ROBOT_RADIUS + WALL_MARGIN - clr, 0.0, None) ** 2, -1) * 100.0
+            k = int(np.argmax(score))
+            traj_world = np.vstack([pose[None, :2], cand[k]])
+            if cfg.arrive_radius > 0 and np.linalg.norm(pose[:2] - scn.goal) < cfg.arrive_radius:
+                # the last metre: straight at the goal (plans trained on paths that end there
+                # do not turn back to a goal overshot)
+                traj_world = np.linspace(pose[:2], np.asarray(scn.goal, np.float64), HORIZON + 1)
+            since = 0
             plan_s += time.perf_counter() - t0
             n_plans += 1
             if buffer is not None and not buffer.full and (t // cfg.replan_every) % buffer_every == 0:
@@ -179,6 +272,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 # encoders the planner's own mistakes
                 act = expert_action(scn, pose, cmds[-1] if cmds else np.zeros(2, np.float32), peds, t, expert_world)
                 buffer.add(obs.image, caption_scene(scn, pose, people[-1], np.asarray(peds.vel), act), obs)
+        since += 1
         cmd, fstate = follow_step(cfg.follower, fstate, jnp.asarray(pose), jnp.asarray(traj_world, F32), scn.dt)
         new_pose = np.asarray(step_unicycle(jnp.asarray(pose), cmd, scn.dt))
         if float(field_lookup(field, jnp.asarray(new_pose[:2]))) < ROBOT_RADIUS:

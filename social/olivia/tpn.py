@@ -17,11 +17,17 @@
   predicting pose increments, accumulated into 10 future poses ``(x, y, φ)`` (eq 1).
 * eq 2: the winner-takes-all loss over the K heads (optionally relaxed: ``eps`` of the loss is
   spread over the losing heads so that none of them stays untrained).
+* Mode scores (not in the thesis; ``score=True``): an FFN on each head's query token gives one logit
+  per plan, trained by cross-entropy against the WTA winner (the head closest to the reference),
+  as multi-modal motion predictors do (MultiPath, MTP). The TSM chooses among the plans from E_T
+  and the plans alone; these scores carry what the LiDAR and goal say about which plan a person
+  would take, and the planner adds them to the TSM's (see :mod:`splatsearch.social.olivia.planner`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import flax.linen as nn
 import jax
@@ -58,6 +64,7 @@ class TPNConfig:
     goal_dim: int = GOAL_DIM
     gru: int = 128
     step_scale: float = 0.3
+    score: bool = True  # mode-score head (one logit per plan); False for checkpoints without one
 
     def __post_init__(self):
         if self.C % self.heads:
@@ -174,12 +181,13 @@ class GRUHead(nn.Module):
 
 class TPN(nn.Module):
     """E_I (B, D), points (B, N, 4), points_valid (B, N), goal (B, GOAL_DIM), and per-sample
-    modality switches use_image (B,), use_lidar (B,) bool -> τ^P (B, K, horizon, 3)."""
+    modality switches use_image (B,), use_lidar (B,) bool -> τ^P (B, K, horizon, 3); with
+    ``with_scores`` (needs ``cfg.score``), also the mode logits (B, K)."""
 
     cfg: TPNConfig
 
     @nn.compact
-    def __call__(self, e_img, points, points_valid, goal, use_image, use_lidar):
+    def __call__(self, e_img, points, points_valid, goal, use_image, use_lidar, with_scores: bool = False):
         c = self.cfg
         B = e_img.shape[0]
         img = nn.Dense(c.img_tokens * c.C)(nn.relu(nn.Dense(c.C)(e_img))).reshape(B, c.img_tokens, c.C)
@@ -193,14 +201,23 @@ class TPN(nn.Module):
         # vmapped so that they compile once instead of K times
         heads = nn.vmap(GRUHead, variable_axes={"params": 0}, split_rngs={"params": True}, in_axes=1, out_axes=1,
                         axis_size=c.K)
-        return heads(c, name="tfh")(q)
+        trajs = heads(c, name="tfh")(q)
+        if not with_scores:
+            return trajs
+        if not c.score:
+            return trajs, jnp.zeros(q.shape[:2], F32)
+        # the plan itself is an input too: which head plays which manoeuvre varies from scene to scene
+        z = jnp.concatenate([q, jax.lax.stop_gradient(trajs).reshape(B, c.K, -1)], -1)
+        scores = nn.Dense(1, name="score_out")(nn.relu(nn.Dense(c.C, name="score_ffn")(z)))[..., 0]
+        return trajs, scores
 
 
 def init_tpn(key, cfg: TPNConfig = TPNConfig()):
-    """Fresh TPN params."""
+    """Fresh TPN params (with the mode-score head when ``cfg.score``)."""
     z = jnp.zeros
-    return jax.jit(TPN(cfg).init)(key, z((1, cfg.embed), F32), z((1, N_POINTS, 4), F32), z((1, N_POINTS), bool),
-                         z((1, cfg.goal_dim), F32), jnp.ones(1, bool), jnp.ones(1, bool))["params"]
+    return jax.jit(partial(TPN(cfg).init, with_scores=True))(
+        key, z((1, cfg.embed), F32), z((1, N_POINTS, 4), F32), z((1, N_POINTS), bool), z((1, cfg.goal_dim), F32),
+        jnp.ones(1, bool), jnp.ones(1, bool))["params"]
 
 
 def head_errors(pred, target, yaw_weight: float = 0.3):
@@ -223,11 +240,19 @@ def wta_loss(pred, target, eps: float = 0.0, yaw_weight: float = 0.3):
     return jnp.mean((1 - eps) * best + eps * others)
 
 
+def score_loss(scores, pred, target):
+    """Cross-entropy of the mode logits ``scores`` (B, K) against the WTA winner of ``pred``
+    (B, K, T, 3) for ``target`` (B, T, 3) (no gradient through the winner's choice)."""
+    k = jnp.argmin(jax.lax.stop_gradient(head_errors(pred, target)), 1)
+    return -jnp.mean(jnp.take_along_axis(jax.nn.log_softmax(scores, -1), k[:, None], 1))
+
+
 def make_loss_fn(cfg: TPNConfig = TPNConfig(), eps: float = 0.05, p_drop_image: float = 0.15,
-                 p_drop_lidar: float = 0.15):
-    """``loss(params, batch, key) -> ()`` (relaxed WTA) for batches ``{e_img, points,
-    points_valid, goal, future}``; each sample drops E_I / E_L with the given probabilities
-    (modality dropout, so that the ablations evaluate a network that has seen them missing)."""
+                 p_drop_lidar: float = 0.15, score_weight: float = 0.02):
+    """``loss(params, batch, key) -> ()`` (relaxed WTA, plus ``score_weight`` x the mode-score
+    cross-entropy when ``cfg.score``) for batches ``{e_img, points, points_valid, goal, future}``;
+    each sample drops E_I / E_L with the given probabilities (modality dropout, so that the
+    ablations evaluate a network that has seen them missing)."""
     model = TPN(cfg)
 
     def loss(params, batch, key):
@@ -235,9 +260,12 @@ def make_loss_fn(cfg: TPNConfig = TPNConfig(), eps: float = 0.05, p_drop_image: 
         k1, k2 = jax.random.split(key)
         use_i = jax.random.uniform(k1, (B,)) >= p_drop_image
         use_l = jax.random.uniform(k2, (B,)) >= p_drop_lidar
-        pred = model.apply({"params": params}, batch["e_img"], batch["points"], batch["points_valid"], batch["goal"],
-                           use_i, use_l)
-        return wta_loss(pred, batch["future"], eps)
+        pred, scores = model.apply({"params": params}, batch["e_img"], batch["points"], batch["points_valid"],
+                                   batch["goal"], use_i, use_l, with_scores=True)
+        out = wta_loss(pred, batch["future"], eps)
+        if cfg.score:
+            out = out + score_weight * score_loss(scores, pred, batch["future"])
+        return out
 
     return loss
 
@@ -247,6 +275,13 @@ def predict(params, e_img, points, points_valid, goal, use_image=True, use_lidar
     B = goal.shape[0]
     return TPN(cfg).apply({"params": params}, e_img, points, points_valid, goal,
                           jnp.full((B,), use_image, bool), jnp.full((B,), use_lidar, bool))
+
+
+def predict_scored(params, e_img, points, points_valid, goal, cfg: TPNConfig = TPNConfig()):
+    """(τ^P (B, K, horizon, 3), mode logits (B, K)) for a batch, all modalities on."""
+    B = goal.shape[0]
+    on = jnp.ones((B,), bool)
+    return TPN(cfg).apply({"params": params}, e_img, points, points_valid, goal, on, on, with_scores=True)
 
 
 def closest_head(pred, target) -> np.ndarray:

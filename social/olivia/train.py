@@ -159,7 +159,10 @@ def load_planner(path: str, variant: str = "olivia") -> OliviaNav:
 
 def config_to_meta(cfg: OliviaConfig) -> dict:
     return {"clip": dataclasses.asdict(cfg.clip), "tpn": dataclasses.asdict(cfg.tpn), "tsm": dataclasses.asdict(cfg.tsm),
-            "replan_every": cfg.replan_every, "retrieve_k": cfg.retrieve_k, "retrieve_tau": cfg.retrieve_tau}
+            "replan_every": cfg.replan_every, "retrieve_k": cfg.retrieve_k, "retrieve_tau": cfg.retrieve_tau,
+            "vote_memory": cfg.vote_memory, "score_weight": cfg.score_weight, "consistency": cfg.consistency,
+            "safety": cfg.safety, "safety_margin": cfg.safety_margin, "text_gate": cfg.text_gate,
+            "arrive_radius": cfg.arrive_radius}
 
 
 def config_from_meta(meta: dict) -> OliviaConfig:
@@ -168,9 +171,13 @@ def config_from_meta(meta: dict) -> OliviaConfig:
         return OliviaConfig()
     t = dict(c["tpn"])
     t["channels"] = tuple(t["channels"])
+    t.setdefault("score", False)  # checkpoints from before the mode-score head
     return OliviaConfig(sc_clip.SCCLIPConfig(**c["clip"]), tpn.TPNConfig(**t), tsm.TSMConfig(**c["tsm"]),
                         replan_every=int(c.get("replan_every", 2)), retrieve_k=int(c.get("retrieve_k", 1)),
-                        retrieve_tau=float(c.get("retrieve_tau", 0.05)))
+                        retrieve_tau=float(c.get("retrieve_tau", 0.05)), vote_memory=float(c.get("vote_memory", 0.0)),
+                        score_weight=float(c.get("score_weight", 1.0 if t["score"] else 0.0)),
+                        **{k: float(c[k]) for k in ("consistency", "safety", "safety_margin", "text_gate", "arrive_radius")
+                           if k in c})
 
 
 # -- training loop --------------------------------------------------------------------------------
