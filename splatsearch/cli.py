@@ -139,8 +139,12 @@ def _cmd_map(args: argparse.Namespace) -> int:
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale,
                          rgbd_odometry=args.track_rgbd_odometry, planar=args.track_planar)
-    if args.track_from_gt and not args.track:
-        raise ValueError("--track-from-gt refines poses by tracking: give --track too")
+    needs_track = [flag for flag, on in (("--track-from-gt", args.track_from_gt),
+                                         ("--track-rgbd-odometry", args.track_rgbd_odometry),
+                                         ("--track-planar", args.track_planar),
+                                         ("--pose-refine", args.pose_refine)) if on]
+    if needs_track and not args.track:
+        raise ValueError(f"{', '.join(needs_track)} act on tracked poses: give --track too")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
                  refine=args.refine, gt_prior=args.track_from_gt)
     for note in seq.notes:

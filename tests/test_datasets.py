@@ -282,6 +282,7 @@ def test_map_command_on_a_dataset_writes_ate_trajectory_and_timing(tmp_path, sou
     assert main(base + ["--track", "--track-from-gt", "--track-iters", "2", "--out", str(out2)]) == 0
     assert json.loads((out2 / "summary.json").read_text())["ate"]["n"] == N
     assert main(base + ["--track-from-gt", "--out", str(out2)]) == 2  # needs --track
+    assert main(base + ["--pose-refine", "--track-planar", "--out", str(out2)]) == 2  # so do these
     # without ground truth, tracking still maps; ATE is not reported
     os.remove(root / "poses.txt")
     out3 = tmp_path / "out3"
