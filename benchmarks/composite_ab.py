@@ -31,16 +31,6 @@ def _load_old(path: str):
     return importlib.import_module("old_kernels.composite")
 
 
-def _timed(fn, repeats: int) -> tuple[float, float]:
-    walls, cpus = [], []
-    for _ in range(repeats):
-        c0, w0 = time.thread_time(), time.perf_counter()
-        fn()
-        walls.append(time.perf_counter() - w0)
-        cpus.append(time.thread_time() - c0)
-    return float(np.median(walls)), float(np.median(cpus))
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("old", help="directory of the old kernels/ package")
@@ -135,7 +125,7 @@ def main() -> None:
             load0 = os.getloadavg()[0]
             for _ in range(args.rounds):
                 for key, f in (("old_f", old_f), ("new_f", new_f), ("old_b", old_b), ("new_b", new_b)):
-                    res[key].append(_timed(f, args.repeats))
+                    res[key].append(bench.time_call_cpu(f, args.repeats, warmup=0, cpu_clock=time.thread_time))
             load1 = os.getloadavg()[0]
             d_img = max(float(np.abs(a.numpy() - b.numpy()).max()) for a, b in zip(o_out[:3], n_out[:3]))
             d_last = int((o_out[3].numpy() != n_out[3].numpy()).sum())
