@@ -17,3 +17,25 @@ def variant(request, monkeypatch):
     """Run a test with both compositing kernels: per-tile (CPU default) and per-pixel (CUDA default)."""
     monkeypatch.setenv("SPLATSEARCH_COMPOSITE", request.param)
     return request.param
+
+
+@pytest.fixture(scope="module")
+def tracking_walk():
+    """Three frames of a simulator walk at 96x72: (frames, K, W, H)."""
+    from splatsearch.datasets import sim_trajectory
+
+    frames, K, W, H, _ = sim_trajectory(1, 3, 96, 72)
+    return frames, K, W, H
+
+
+@pytest.fixture(scope="module")
+def tracking_map(tracking_walk):
+    """A mapper fitted to the walk's first frame (3 x 20 steps) and that frame, for tracking tests."""
+    from splatsearch.mapper import Mapper, MapperConfig
+
+    frames, K, W, H = tracking_walk
+    f = frames[0]
+    m = Mapper(K, W, H, MapperConfig(iters=20, stride=1, initial_capacity=8192))
+    for _ in range(3):
+        m.update(f.rgb, f.depth, f.viewmat)
+    return m, f

@@ -4,7 +4,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from splatsearch.mapper import Mapper, MapperConfig
 from splatsearch.slam import perturb_viewmat, planar_basis, pose_distance, project_planar, track
 from splatsearch.sim.env import camera_viewmat
 
@@ -30,20 +29,8 @@ def test_planar_basis_keeps_height_and_tilt():
     np.testing.assert_allclose(p[:3, 2], vm[:3, 2], atol=1e-6)
 
 
-@pytest.fixture(scope="module")
-def fitted():
-    from splatsearch.datasets import sim_trajectory
-
-    frames, K, W, H, _ = sim_trajectory(1, 3, 96, 72)
-    f = frames[0]
-    m = Mapper(K, W, H, MapperConfig(iters=20, stride=1, initial_capacity=8192))
-    for _ in range(3):
-        m.update(f.rgb, f.depth, f.viewmat)
-    return m, f
-
-
-def test_planar_tracking_recovers_an_in_plane_offset(fitted):
-    m, f = fitted
+def test_planar_tracking_recovers_an_in_plane_offset(tracking_map):
+    m, f = tracking_map
     B = planar_basis(jnp.asarray(f.viewmat))
     noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), B @ jnp.array([0.015, 0.015, -0.012])))
     ang0, d0 = pose_distance(noisy, f.viewmat)

@@ -4,30 +4,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from splatsearch.mapper import Mapper, MapperConfig
+from splatsearch.mapper import MapperConfig
 from splatsearch.slam import SLAM, TrackerConfig, perturb_viewmat, pose_distance, track
 
 
-@pytest.fixture(scope="module")
-def small_walk():
-    from splatsearch.datasets import sim_trajectory
-
-    frames, K, W, H, _ = sim_trajectory(1, 3, 96, 72)
-    return frames, K, W, H
-
-
-@pytest.fixture(scope="module")
-def fitted(small_walk):
-    frames, K, W, H = small_walk
-    f = frames[0]
-    m = Mapper(K, W, H, MapperConfig(iters=20, stride=1, initial_capacity=8192))
-    for _ in range(3):
-        m.update(f.rgb, f.depth, f.viewmat)
-    return m, f
-
-
-def test_tracking_recovers_a_perturbed_pose(fitted):
-    m, f = fitted
+def test_tracking_recovers_a_perturbed_pose(tracking_map):
+    m, f = tracking_map
     # 2 cm and about 1 degree off
     xi = jnp.array([0.01, -0.012, 0.008, 0.012, -0.01, 0.012])
     noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), xi))
@@ -38,11 +20,11 @@ def test_tracking_recovers_a_perturbed_pose(fitted):
     assert d < 0.005 and ang < np.radians(0.3), (d0, ang0, d, ang)  # a few mm, a fraction of a degree
 
 
-def test_rgbd_odometry_start_recovers_a_perturbed_pose(fitted):
+def test_rgbd_odometry_start_recovers_a_perturbed_pose(tracking_map):
     from splatsearch.gaussians import render_args
     from splatsearch.slam import odometry_init
 
-    m, f = fitted
+    m, f = tracking_map
     margs = render_args(m.map.params(), m.map.active, m.map.isotropic)
     rng = np.random.default_rng(0)
     plain, odo = [], []
@@ -64,8 +46,8 @@ def test_rgbd_odometry_start_recovers_a_perturbed_pose(fitted):
     assert np.mean(odo) < np.mean(plain), (odo, plain)
 
 
-def test_diverging_or_nan_tracking_is_detected(fitted):
-    m, f = fitted
+def test_diverging_or_nan_tracking_is_detected(tracking_map):
+    m, f = tracking_map
     noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), jnp.array([0, 0, 0, 0.01, 0, 0.0])))
     # huge steps throw the pose far away: reported, and the initial guess is returned
     r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=10, lr_rot=0.5, lr_trans=2.0)
@@ -86,8 +68,8 @@ def _finite_map(mapper):
     return all(np.isfinite(np.asarray(v)[:n]).all() for v in p.values())
 
 
-def test_slam_reports_and_skips_bad_frames(small_walk):
-    frames, K, W, H = small_walk
+def test_slam_reports_and_skips_bad_frames(tracking_walk):
+    frames, K, W, H = tracking_walk
     tcfg = TrackerConfig(iters=10)
     slam = SLAM(K, W, H, MapperConfig(iters=5, first_iters=40, stride=1, initial_capacity=8192), tcfg)
     r0 = slam.process(frames[0].rgb, frames[0].depth, frames[0].viewmat)
