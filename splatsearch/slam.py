@@ -55,10 +55,11 @@ def perturb_viewmat(viewmat, xi):
     return T @ viewmat
 
 
-def planar_basis(viewmat):
-    """(6, 3) basis of the camera-frame se(3) increments (rotation vector, translation) that move
-    a camera in the world's horizontal plane (world z up): a turn about the vertical through the
-    camera centre and the two horizontal translations. ``perturb_viewmat(viewmat, B @ p)`` keeps
+def planar_basis(viewmat: jax.Array) -> jax.Array:
+    """(6, 3) basis, for the world-to-camera ``viewmat`` (4, 4), of the camera-frame se(3)
+    increments (rotation vector in rad, translation in m) that move a camera in the world's
+    horizontal plane (world z up): a turn about the vertical through the camera centre and the
+    two horizontal translations. ``perturb_viewmat(viewmat, B @ p)`` keeps
     the camera's height, roll and pitch for any p (3,)."""
     R = viewmat[:3, :3]
     up = R[:, 2]  # world z in camera coordinates
@@ -72,10 +73,10 @@ def planar_basis(viewmat):
     return jnp.stack(cols, axis=1)
 
 
-def project_planar(viewmat, ref) -> np.ndarray:
-    """``viewmat`` (4, 4) moved onto the planar motions of ``ref``: the camera-frame increment
-    from ``ref`` is projected on :func:`planar_basis` (a ground robot cannot change its height,
-    roll or pitch)."""
+def project_planar(viewmat: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``viewmat`` (4, 4, world-to-camera) moved onto the planar motions of ``ref`` (4, 4), as
+    float32 (4, 4): the camera-frame increment from ``ref`` is projected on :func:`planar_basis`
+    (a ground robot cannot change its height, roll or pitch)."""
     ref = np.asarray(ref, np.float64)
     d = np.asarray(viewmat, np.float64) @ np.linalg.inv(ref)
     w = cv2.Rodrigues(d[:3, :3])[0].ravel()

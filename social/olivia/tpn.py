@@ -240,7 +240,7 @@ def wta_loss(pred, target, eps: float = 0.0, yaw_weight: float = 0.3):
     return jnp.mean((1 - eps) * best + eps * others)
 
 
-def score_loss(scores, pred, target):
+def score_loss(scores: jax.Array, pred: jax.Array, target: jax.Array) -> jax.Array:
     """Cross-entropy of the mode logits ``scores`` (B, K) against the WTA winner of ``pred``
     (B, K, T, 3) for ``target`` (B, T, 3) (no gradient through the winner's choice)."""
     k = jnp.argmin(jax.lax.stop_gradient(head_errors(pred, target)), 1)
