@@ -144,7 +144,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
                                          ("--track-planar", args.track_planar),
                                          ("--pose-refine", args.pose_refine)) if on]
     if needs_track and not args.track:
-        raise ValueError(f"{', '.join(needs_track)} act on tracked poses: give --track too")
+        raise ValueError(f"{', '.join(needs_track)}: only with --track (these options act on tracked poses)")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
                  refine=args.refine, gt_prior=args.track_from_gt)
     for note in seq.notes:
