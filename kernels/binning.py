@@ -195,3 +195,154 @@ def tile_ranges_kernel(keys: wp.array(dtype=wp.int64), count: int, rank_bits: in
         ranges[t, 0] = k
     if k == count - 1 or int(keys[k + 1] >> wp.int64(rank_bits)) != t:
         ranges[t, 1] = k + 1
+
+
+# ---- CPU binning: a counting sort by tile in depth order (no key sort) ----
+#
+# Walking the Gaussians front to back and appending each one to the lists of the tiles it hits
+# leaves every tile's list in depth order, the order the radix sort of (tile, rank) keys gives.
+# The walk is cut into chunks of consecutive depth ranks; a chunk's first pass counts its hits
+# per tile, a serial scan over (tile, chunk) turns the counts into write cursors, and the
+# chunks then scatter independently. The result is the one (tile, depth rank) order whatever
+# the chunking, so it does not depend on the thread count. Each chunk is one sequential CPU
+# launch that owns its row of counters; on CUDA these plain increments would race, so CUDA
+# keeps the key sort above. Both passes read the Gaussians' screen data in depth order from
+# copies gathered once (``gather_sorted_kernel``): reading them through ``order`` inside the
+# tile loops stalls on cache misses and costs more than the gather.
+
+
+@wp.kernel
+def gather_sorted_kernel(
+    order: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.vec2i),
+    j0: int,
+    s_means2d: wp.array(dtype=wp.vec2),
+    s_conics: wp.array(dtype=wp.vec3),
+    s_opacities: wp.array(dtype=float),
+    s_radii: wp.array(dtype=wp.vec2i),
+):
+    """Copies of the screen data in depth order: ``s_x[j] = x[order[j]]``."""
+    j = wp.tid() + j0
+    g = order[j]
+    s_means2d[j] = means2d[g]
+    s_conics[j] = conics[g]
+    s_opacities[j] = opacities[g]
+    s_radii[j] = radii[g]
+
+
+@wp.kernel
+def count_tiles_ranked_kernel(
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.vec2i),
+    tile: int,
+    tiles_x: int,
+    tiles_y: int,
+    width: int,
+    height: int,
+    j0: int,
+    chunk: int,
+    masks: wp.array(dtype=wp.int32),
+    hist: wp.array2d(dtype=wp.int32),
+):
+    """Hits per tile of the Gaussians of depth ranks [j0, j0 + dim) into ``hist[chunk]`` (zeroed
+    beforehand); for boxes of <= 31 tiles also the hit bit mask, as in ``count_tiles_kernel``.
+    The Gaussian arrays are the depth-sorted copies, indexed by rank."""
+    g = wp.tid() + j0
+    r = radii[g]
+    mask = int(0)
+    if r[0] > 0 or r[1] > 0:
+        m = means2d[g]
+        b = tile_box(m, r, tile, tiles_x, tiles_y)
+        nbox = (b[2] - b[0] + 1) * (b[3] - b[1] + 1)
+        if nbox == 1:
+            mask = 1  # the Gaussian is visible, so its only tile keeps it (a conservative choice)
+            t = b[1] * tiles_x + b[0]
+            hist[chunk, t] = hist[chunk, t] + 1
+        elif nbox > 0:
+            cn = conics[g]
+            thresh = wp.log(opacities[g] / ALPHA_MIN) + TILE_TEST_SLACK
+            k = int(0)
+            for ty in range(b[1], b[3] + 1):
+                for tx in range(b[0], b[2] + 1):
+                    pr = pixel_rect(tx, ty, tile, width, height)
+                    if tile_hit(m, cn, thresh, pr[0], pr[1], pr[2], pr[3]):
+                        t = ty * tiles_x + tx
+                        hist[chunk, t] = hist[chunk, t] + 1
+                        if k < 31:
+                            mask = mask | (1 << k)
+                    k += 1
+    masks[g] = mask
+
+
+@wp.kernel
+def tile_cursors_kernel(hist: wp.array2d(dtype=wp.int32), n_tiles: int, n_chunks: int, total_at: int,
+                        ranges: wp.array2d(dtype=wp.int32), total: wp.array(dtype=wp.int32)):
+    """One thread: ``ranges[t] = (first, end)`` of tile t, ``hist[c, t]`` becomes chunk c's first
+    slot in tile t's list, ``total[total_at]`` the intersection count."""
+    s = int(0)
+    for t in range(n_tiles):
+        ranges[t, 0] = s
+        for c in range(n_chunks):
+            h = hist[c, t]
+            hist[c, t] = s
+            s += h
+        ranges[t, 1] = s
+    total[total_at] = s
+
+
+@wp.kernel
+def scatter_ids_kernel(
+    order: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.vec2i),
+    masks: wp.array(dtype=wp.int32),
+    tile: int,
+    tiles_x: int,
+    tiles_y: int,
+    width: int,
+    height: int,
+    j0: int,
+    chunk: int,
+    cursors: wp.array2d(dtype=wp.int32),
+    ids: wp.array(dtype=wp.int32),
+):
+    """Append the Gaussians of depth ranks [j0, j0 + dim), in rank order, to their tiles' lists
+    at chunk ``chunk``'s cursors (the same tile tests as ``count_tiles_ranked_kernel``, on the
+    same depth-sorted copies); ``order`` maps a rank back to the Gaussian's index."""
+    j = wp.tid() + j0
+    r = radii[j]
+    if r[0] <= 0 and r[1] <= 0:
+        return
+    g = order[j]
+    m = means2d[j]
+    b = tile_box(m, r, tile, tiles_x, tiles_y)
+    nbox = (b[2] - b[0] + 1) * (b[3] - b[1] + 1)
+    if nbox <= 31:
+        mask = masks[j]
+        bit = int(0)
+        for ty in range(b[1], b[3] + 1):
+            for tx in range(b[0], b[2] + 1):
+                if (mask >> bit) & 1 != 0:
+                    t = ty * tiles_x + tx
+                    k = cursors[chunk, t]
+                    ids[k] = g
+                    cursors[chunk, t] = k + 1
+                bit += 1
+        return
+    cn = conics[j]
+    thresh = wp.log(opacities[j] / ALPHA_MIN) + TILE_TEST_SLACK
+    for ty in range(b[1], b[3] + 1):
+        for tx in range(b[0], b[2] + 1):
+            pr = pixel_rect(tx, ty, tile, width, height)
+            if tile_hit(m, cn, thresh, pr[0], pr[1], pr[2], pr[3]):
+                t = ty * tiles_x + tx
+                k = cursors[chunk, t]
+                ids[k] = g
+                cursors[chunk, t] = k + 1

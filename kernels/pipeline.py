@@ -29,7 +29,17 @@ import warp as wp
 # Warp's automatic adjoints are never used: every backward here is written by hand.
 wp.set_module_options({"enable_backward": False})
 
-from .binning import count_tiles_kernel, depth_keys_kernel, depth_rank_kernel, tile_ranges_kernel, write_keys_kernel
+from .binning import (
+    count_tiles_kernel,
+    count_tiles_ranked_kernel,
+    depth_keys_kernel,
+    gather_sorted_kernel,
+    depth_rank_kernel,
+    scatter_ids_kernel,
+    tile_cursors_kernel,
+    tile_ranges_kernel,
+    write_keys_kernel,
+)
 from .composite import TILE_LANES, bwd_scratch_fields, composite_kernels, composite_tile_kernels, composite_top_id
 from .config import resolve_composite
 from .parallel import launch_split, n_threads_for, run_bands
@@ -182,6 +192,18 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     order = ws.get("order", 2 * n, wp.int32)
     wp.launch(depth_keys_kernel, dim=n, inputs=[depths, radii], outputs=[dkeys, order], device=device)
     wp.utils.radix_sort_pairs(dkeys, order, n)
+    binner = _bin_by_counting if wp.get_device(device).is_cpu else _bin_by_key_sort
+    return binner(ws, order, means2d, conics, opacities, radii, width, height, tile, ranges, flags, threads)
+
+
+def _bin_by_key_sort(ws: Workspace, order, means2d, conics, opacities, radii, width: int, height: int, tile: int,
+                     ranges, flags, threads: int | None) -> tuple[wp.array, wp.array, int]:
+    """Binning for CUDA: keys ``tile << rank_bits | depth rank`` written in parallel, then one
+    stable radix sort (it also runs on the CPU, where :func:`_bin_by_counting` is faster)."""
+    device = means2d.device
+    n = means2d.shape[0]
+    tiles_x, tiles_y = grid_dims(width, height, tile)
+    n_tiles = tiles_x * tiles_y
     rank = ws.get("rank", n, wp.int32)
     wp.launch(depth_rank_kernel, dim=n, inputs=[order], outputs=[rank], device=device)
     counts = ws.get("counts", n, wp.int32)
@@ -208,6 +230,60 @@ def bin_gaussians(ws: Workspace, means2d, conics, opacities, depths, radii, widt
     end_bit = rank_bits + max(1, int(n_tiles - 1).bit_length())
     wp.utils.radix_sort_pairs(keys, ids, n_isect, end_bit=end_bit)
     wp.launch(tile_ranges_kernel, dim=n_isect, inputs=[keys, n_isect, rank_bits], outputs=[ranges], device=device)
+    return ranges, ids[:n_isect], n_isect
+
+
+#: depth-rank chunks per worker thread of the CPU binning (the near chunks hit more tiles)
+BIN_CHUNKS_PER_THREAD = 4
+
+
+def _bin_by_counting(ws: Workspace, order, means2d, conics, opacities, radii, width: int, height: int, tile: int,
+                     ranges, flags, threads: int | None) -> tuple[wp.array, wp.array, int]:
+    """CPU binning without a key sort: count hits per (chunk of depth ranks, tile), scan, and
+    scatter each chunk's Gaussians front to back into the tile lists (see :mod:`.binning`).
+    The chunks run on the worker threads; the lists do not depend on how many there are."""
+    device = means2d.device
+    n = means2d.shape[0]
+    tiles_x, tiles_y = grid_dims(width, height, tile)
+    n_tiles = tiles_x * tiles_y
+    n_threads = n_threads_for(device, threads) if n >= 4096 else 1
+    n_chunks = n_threads * BIN_CHUNKS_PER_THREAD if n_threads > 1 else 1
+    bounds = [(n * c // n_chunks, n * (c + 1) // n_chunks) for c in range(n_chunks)]
+    bands = [bd for bd in bounds if bd[1] > bd[0]]
+    chunk_of = {bd: c for c, bd in enumerate(bands)}
+    n_chunks = len(bands)
+    hist = ws.get2d("tile_hist", n_chunks, n_tiles, wp.int32, zero=True)
+    masks = ws.get("masks", n, wp.int32)
+    grid = [tile, tiles_x, tiles_y, width, height]
+    gauss = [ws.get("s_means2d", n, wp.vec2), ws.get("s_conics", n, wp.vec3), ws.get("s_opacities", n, wp.float32),
+             ws.get("s_radii", n, wp.vec2i)]
+
+    def count(_w, j0, j1):
+        wp.launch(gather_sorted_kernel, dim=j1 - j0, inputs=[order, means2d, conics, opacities, radii, j0],
+                  outputs=gauss, device=device)
+        wp.launch(count_tiles_ranked_kernel, dim=j1 - j0, inputs=gauss + grid + [j0, chunk_of[(j0, j1)]],
+                  outputs=[masks, hist], device=device)
+
+    gather_sorted_kernel.module.load(wp.get_device(device))
+    run_bands(bands, n_threads, count, count_tiles_ranked_kernel, device)
+    total = flags if flags is not None else ws.get("isect_total", 1, wp.int32)
+    wp.launch(tile_cursors_kernel, dim=1, inputs=[hist, n_tiles, n_chunks, N_FLAGS if flags is not None else 0],
+              outputs=[ranges, total], device=device)
+    host = total.numpy()  # the single host round trip of a forward
+    if flags is not None:
+        _raise_flags(host)
+        n_isect = int(host[N_FLAGS])
+    else:
+        n_isect = int(host[0])
+    ids = ws.get("ids", max(n_isect, 1), wp.int32)
+    if n_isect == 0:
+        return ranges, ids[:0], 0
+
+    def scatter(_w, j0, j1):
+        wp.launch(scatter_ids_kernel, dim=j1 - j0, inputs=[order] + gauss + [masks] + grid + [j0, chunk_of[(j0, j1)], hist],
+                  outputs=[ids], device=device)
+
+    run_bands(bands, n_threads, scatter, scatter_ids_kernel, device)
     return ranges, ids[:n_isect], n_isect
 
 
