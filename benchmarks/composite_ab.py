@@ -88,11 +88,14 @@ def main() -> None:
                       wp.empty(nt * 16 * (7 + C)), wp.empty(nt * (7 + C)), wp.empty(nt * 16, dtype=wp.int32))
             geo = [ranges, ids, means2d, conics, opac]
 
-            def simd_style(k) -> bool:  # this checkout's signature (flat colours, per-tile scratch)
-                return "colf" in [arg.label for arg in k.adj.args]
+            def simd_style(k) -> bool:  # per-tile scratch signature (flat colours or records)
+                return any(arg.label in ("colf", "rec") for arg in k.adj.args)
 
             def launch_f(k, out):
-                if simd_style(k):
+                if any(arg.label == "rec" for arg in k.adj.args):  # packed records, built inside the timing
+                    rec = pl.splat_records(ws, means2d, conics, opac, depths, colors, radii, threads=1)
+                    wp.launch(k, dim=nt, inputs=[ranges, ids, rec, W, H, tx, 0, *n_scr], outputs=list(out))
+                elif simd_style(k):
                     wp.launch(k, dim=nt, inputs=geo + [colf, depths, W, H, tx, 0, *n_scr], outputs=list(out))
                 else:
                     wp.launch(k, dim=nt, inputs=geo + [colors, depths, W, H, 16, tx, 0, *o_scr], outputs=list(out))

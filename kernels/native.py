@@ -100,7 +100,7 @@ _FWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
     }
     for (int ch = 0; ch < C; ++ch) {
         float* S = sC.data + (t * C + ch) * 256 + 16 * r;
-        float cv = colf.data[g * C + ch];
+        float cv = colf.data[cb + ch];
         for (int k = 0; k < 16; ++k)
             S[k] = S[k] + cv * w[k];
     }
@@ -113,10 +113,10 @@ _FWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
 def fwd_row(sT: wp.array(dtype=float), sD: wp.array(dtype=float), sL: wp.array(dtype=wp.int32),
             sC: wp.array(dtype=float), colf: wp.array(dtype=float), C: int, t: int, tb: int, r: int,
             x0: int, nk: int, mx: float, dy: float, cn0: float, cn1: float, cn2: float, o: float,
-            tcut: float, d: float, g: int, j: int) -> int:
-    """Blend Gaussian g (sorted index j) into row r of tile t (lanes k < nk are pixels x0 + k; dy =
-    my - (py + 0.5)); per-lane state T (negated once the pixel stopped), D, L and C colour fields;
-    returns how many pixels of the row stopped at this Gaussian."""
+            tcut: float, d: float, cb: int, j: int) -> int:
+    """Blend a Gaussian (sorted index j, colour at ``colf[cb:cb + C]``) into row r of tile t (lanes
+    k < nk are pixels x0 + k; dy = my - (py + 0.5)); per-lane state T (negated once the pixel
+    stopped), D, L and C colour fields; returns how many pixels of the row stopped at it."""
     ...
 
 

@@ -40,7 +40,15 @@ from .binning import (
     tile_ranges_kernel,
     write_keys_kernel,
 )
-from .composite import TILE_LANES, bwd_scratch_fields, composite_kernels, composite_tile_kernels, composite_top_id
+from .composite import (
+    TILE_LANES,
+    bwd_scratch_fields,
+    composite_kernels,
+    composite_tile_kernels,
+    composite_top_id,
+    splat_record_size,
+    splat_records_kernel,
+)
 from .config import resolve_composite
 from .parallel import launch_split, n_threads_for, run_bands
 from .projection import project_bwd_kernel, project_fwd_kernel
@@ -294,6 +302,21 @@ def _flat_floats(ws: Workspace, colors, n: int, C: int) -> wp.array:
     return wp.array(ptr=colors.ptr, shape=(n * C,), dtype=wp.float32, device=colors.device, copy=False)
 
 
+def splat_records(ws: Workspace, means2d, conics, opacities, depths, colors, radii,
+                  threads: int | None = None) -> wp.array:
+    """The tile forward's per-Gaussian records (:func:`.composite.splat_records_kernel`), built
+    in parallel chunks into ``ws``'s buffer "splat_rec" (n * record size floats)."""
+    n = means2d.shape[0]
+    C = colors.dtype._length_ if hasattr(colors.dtype, "_length_") else 1
+    RS = splat_record_size(C)
+    rec = ws.get("splat_rec", max(1, n * RS), wp.float32)
+    if n > 0:
+        colf = _flat_floats(ws, colors, n, C)
+        launch_split(splat_records_kernel, n, lambda i0, _w: [means2d, conics, opacities, depths, colf, radii, C, RS, i0],
+                     [rec], means2d.device, threads)
+    return rec
+
+
 def _raise_flags(host_flags: np.ndarray) -> None:
     for k in range(N_FLAGS):
         if host_flags[k]:
@@ -369,12 +392,11 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
             sL = st.ws.get("tile_L", n_tiles * 256, wp.int32)
             sC = st.ws.get("tile_C", n_tiles * 256 * C, wp.float32)
             live = st.ws.get("live", n_tiles * 16, wp.vec2i)
-            colf = _flat_floats(st.ws, colors, n, C)
+            rec = splat_records(st.ws, means2d, conics, opacities, depths, colors, radii, threads)
 
             def launch(_w, t0, t1):
                 wp.launch(fwd, dim=t1 - t0,
-                          inputs=[ranges, ids, means2d, conics, opacities, colf, depths, width, height, tiles_x, t0,
-                                  sT, sD, sL, sC, live],
+                          inputs=[ranges, ids, rec, width, height, tiles_x, t0, sT, sD, sL, sC, live],
                           outputs=[out_color, out_depth, out_T, out_last], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
