@@ -367,8 +367,8 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
         if validate:
             if n > 0:
                 colors2d = wp.array(ptr=colors.ptr, shape=(n, C), dtype=wp.float32, device=device, copy=False)
-                wp.launch(validate_gaussians_kernel, dim=n, inputs=[means, quats, scales, opacities, colors2d],
-                          outputs=[flags], device=device)
+                launch_split(validate_gaussians_kernel, n,
+                             lambda i0, _w: [means, quats, scales, opacities, colors2d, i0], [flags], device, threads)
             wp.launch(validate_camera_kernel, dim=1, inputs=[viewmat, K], outputs=[flags], device=device)
         project(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
                 means2d, conics, depths, radii, threads)

@@ -54,9 +54,12 @@ def validate_gaussians_kernel(
     scales: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     colors: wp.array2d(dtype=float),
+    i0: int,
     flags: wp.array(dtype=wp.int32),
 ):
-    i = wp.tid()
+    """Set the flag of every kind of bad value among Gaussians [i0, i0 + dim). Only ever stores 1,
+    so chunks may run concurrently."""
+    i = wp.tid() + i0
     if _bad3(means[i]):
         flags[F_MEANS] = 1
     q = quats[i]
