@@ -103,7 +103,11 @@ def main() -> None:
             def launch_b(k, out, g):
                 for a in g:
                     a.zero_()
-                if simd_style(k):
+                if any(arg.label == "rec" for arg in k.adj.args):  # packed records, built inside the timing
+                    rec = pl.splat_records(ws, means2d, conics, opac, depths, colors, radii, threads=1)
+                    wp.launch(k, dim=nt, inputs=[ranges, ids, rec, W, H, tx, 0, out[2], out[3], v_color, v_depth,
+                                                 v_alpha, *n_bscr], outputs=list(g))
+                elif simd_style(k):
                     wp.launch(k, dim=nt, inputs=geo + [colf, depths, W, H, tx, 0, out[2], out[3], v_color, v_depth,
                                                        v_alpha, *n_bscr], outputs=list(g))
                 else:

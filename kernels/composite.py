@@ -364,7 +364,7 @@ def splat_records_kernel(
     """Everything the tile forward reads of Gaussian i, packed into ``rec[RS i:]`` (see
     ``REC_HEAD``): one cache line per intersection instead of five arrays, and the cutoff and
     ellipse shape computed once per Gaussian instead of once per tile. Culled Gaussians are
-    never binned and get no record."""
+    never binned and get no record. The tile forward and backward read these records."""
     i = wp.tid() + i0
     r = radii[i]
     if r[0] <= 0 and r[1] <= 0:
@@ -500,11 +500,7 @@ def composite_tile_kernels(C: int):
     def composite_bwd_tile(
         ranges: wp.array2d(dtype=wp.int32),
         ids: wp.array(dtype=wp.int32),
-        means2d: wp.array(dtype=wp.vec2),
-        conics: wp.array(dtype=wp.vec3),
-        opacities: wp.array(dtype=float),
-        colf: wp.array(dtype=float),
-        depths: wp.array(dtype=float),
+        rec: wp.array(dtype=float),
         width: int,
         height: int,
         tiles_x: int,
@@ -570,12 +566,13 @@ def composite_tile_kernels(C: int):
         for jj in range(jmax - start + 1):
             j = jmax - jj
             g = ids[j]
-            m = means2d[g]
-            cn = conics[g]
-            o = opacities[g]
-            d = depths[g]
-            tcut = cutoff(o)
-            sh = ellipse_shape(cn, tcut)
+            b = g * RS
+            m = wp.vec2(rec[b + 0], rec[b + 1])
+            cn = wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4])
+            o = rec[b + 5]
+            tcut = rec[b + 6]
+            d = rec[b + 7]
+            sh = wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11])
             rows = shape_rows(m, sh, y0, y1)
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):
@@ -586,8 +583,8 @@ def composite_tile_kernels(C: int):
                 cols = shape_cols(m, sh, dy, x0, x1)
                 if cols[0] > cols[1]:
                     continue
-                hit += bwd_row(bs, bl, gs, colf, C, NG, t, tb, r, x0, nk, m[0], dy, cn[0], cn[1], cn[2],
-                               o, tcut, d, g, j)
+                hit += bwd_row(bs, bl, gs, rec, C, NG, t, tb, r, x0, nk, m[0], dy, cn[0], cn[1], cn[2],
+                               o, tcut, d, b + REC_HEAD, j)
             if hit != 0:
                 lane_sums(gs, gout, t, NG)
                 gb = t * NG

@@ -160,7 +160,7 @@ _BWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
     for (int ch = 0; ch < C; ++ch) {
         float* B = bs.data + (t * NF + 5 + ch) * 256 + rb;
         const float* Vc = bs.data + (t * NF + 5 + C + ch) * 256 + rb;
-        float cv = colf.data[g * C + ch];
+        float cv = colf.data[cb + ch];
         float gc[16];
         for (int k = 0; k < 16; ++k) {
             float b = B[k];
@@ -204,10 +204,11 @@ _BWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
 def bwd_row(bs: wp.array(dtype=float), bl: wp.array(dtype=wp.int32), gs: wp.array(dtype=float),
             colf: wp.array(dtype=float), C: int, NG: int, t: int, tb: int, r: int, x0: int, nk: int,
             mx: float, dy: float, cn0: float, cn1: float, cn2: float, o: float, tcut: float, d: float,
-            g: int, j: int) -> int:
-    """Adjoint of :func:`fwd_row` for Gaussian g (sorted index j) on row r of tile t, walking back
-    to front: recovers T before g per lane, updates the suffix sums buf, and adds the row's
-    per-lane gradient sums into gs[16 t NG:]; returns how many lanes g contributed to."""
+            cb: int, j: int) -> int:
+    """Adjoint of :func:`fwd_row` for a Gaussian (sorted index j, colour at ``colf[cb:cb + C]``) on
+    row r of tile t, walking back to front: recovers T before it per lane, updates the suffix sums
+    buf, and adds the row's per-lane gradient sums into gs[16 t NG:]; returns how many lanes it
+    contributed to."""
     ...
 
 

@@ -134,6 +134,7 @@ class BinState:
     n_isect: int = 0
     ranges: wp.array | None = None  # (num_tiles, 2) int32
     ids: wp.array | None = None  # (n_isect,) int32, Gaussian index per intersection
+    rec: wp.array | None = None  # the tile kernels' splat records of the call (None: pixel kernels)
     ws: Workspace | None = None
 
 
@@ -379,7 +380,7 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
         slot.generation = -1
         ranges, ids, n_isect = bin_gaussians(slot.ws, means2d, conics, opacities, depths, radii,
                                              width, height, tile, flags=flags, threads=threads)
-        slot.generation, slot.ranges, slot.ids, slot.n_isect = st.generation, ranges, ids, n_isect
+        slot.generation, slot.ranges, slot.ids, slot.n_isect, slot.rec = st.generation, ranges, ids, n_isect, None
         tiles_x, tiles_y = grid_dims(width, height, tile)
         n_threads = n_threads_for(device, threads)
         if resolve_composite(composite, device) == "tile":
@@ -392,7 +393,8 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
             sL = st.ws.get("tile_L", n_tiles * 256, wp.int32)
             sC = st.ws.get("tile_C", n_tiles * 256 * C, wp.float32)
             live = st.ws.get("live", n_tiles * 16, wp.vec2i)
-            rec = splat_records(st.ws, means2d, conics, opacities, depths, colors, radii, threads)
+            rec = splat_records(slot.ws, means2d, conics, opacities, depths, colors, radii, threads)
+            slot.rec = rec  # the backward reuses them while the slot holds this call
 
             def launch(_w, t0, t1):
                 wp.launch(fwd, dim=t1 - t0,
@@ -416,17 +418,26 @@ def rasterize_forward(means, quats, scales, opacities, colors, viewmat, K, width
         return slot
 
 
-def lookup_binning(device, handle: tuple[int, int], means2d, conics, opacities, depths, radii,
-                   width: int, height: int, tile: int = TILE_SIZE,
-                   threads: int | None = None) -> tuple[wp.array, wp.array, int]:
-    """Binning for ``handle`` from the slot ring, or recomputed when the slot was reused."""
+def _live_slot(device, handle: tuple[int, int]) -> BinState | None:
+    """The ring slot that still holds the forward call of ``handle``, else None."""
     st = _device_state(device)
     slot_idx, gen = handle
     if 0 <= slot_idx < N_SLOTS:
         slot = st.slots[slot_idx]
         if slot.generation == gen and slot.ranges is not None:
-            return slot.ranges, slot.ids, slot.n_isect
-    return bin_gaussians(st.ws, means2d, conics, opacities, depths, radii, width, height, tile, threads=threads)
+            return slot
+    return None
+
+
+def lookup_binning(device, handle: tuple[int, int], means2d, conics, opacities, depths, radii,
+                   width: int, height: int, tile: int = TILE_SIZE,
+                   threads: int | None = None) -> tuple[wp.array, wp.array, int]:
+    """Binning for ``handle`` from the slot ring, or recomputed when the slot was reused."""
+    slot = _live_slot(device, handle)
+    if slot is not None:
+        return slot.ranges, slot.ids, slot.n_isect
+    return bin_gaussians(_device_state(device).ws, means2d, conics, opacities, depths, radii, width, height, tile,
+                         threads=threads)
 
 
 def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
@@ -484,13 +495,15 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
             gs = ws.get("tile_gsum", n_tiles * 16 * (7 + C), wp.float32)
             gout = ws.get("tile_gout", n_tiles * (7 + C), wp.float32)
             row_last = ws.get("row_last", n_tiles * 16, wp.int32)
-            colf = _flat_floats(ws, colors, n, C)
+            slot = _live_slot(device, handle)
+            rec = slot.rec if slot is not None and slot.rec is not None else \
+                splat_records(ws, means2d, conics, opacities, depths, colors, radii, threads)
 
             def launch(w, t0, t1):
                 a = accs[w]
                 wp.launch(bwd, dim=t1 - t0,
-                          inputs=[ranges, ids, means2d, conics, opacities, colf, depths, width, height,
-                                  tiles_x, t0, out_T, out_last, v_color, v_depth, v_alpha, bs, bl, gs, gout, row_last],
+                          inputs=[ranges, ids, rec, width, height, tiles_x, t0, out_T, out_last, v_color, v_depth,
+                                  v_alpha, bs, bl, gs, gout, row_last],
                           outputs=[a[0], a[1], a[2], colors_view(a[3]), a[4]], device=device)
 
             bands = _tile_bands(tiles_x * tiles_y, tiles_x, n_threads)
