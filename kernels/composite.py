@@ -21,11 +21,14 @@ import functools
 
 import warp as wp
 
-from .native import bwd_row, exp_neg, fwd_row, lane_sums
+from .native import bwd_row, exp_neg, fwd_row, lane_sums, prefetch
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 #: slack on the log-cutoff so that float rounding never skips a pixel whose alpha reaches 1/255
 SIGMA_SLACK = wp.constant(1.0e-3)
+
+#: how many list entries ahead the tile kernels prefetch a Gaussian's record
+PREFETCH_AHEAD = wp.constant(2)
 
 #: px added on each side of the exact ellipse spans of the tile kernels (float rounding only)
 SPAN_MARGIN = wp.constant(0.05)
@@ -451,6 +454,8 @@ def composite_tile_kernels(C: int):
         for j in range(start, end):
             if ylo > yhi:
                 break  # every pixel of the tile is saturated
+            if j + PREFETCH_AHEAD < end:
+                prefetch(rec, ids[j + PREFETCH_AHEAD] * RS)
             b = ids[j] * RS
             m = wp.vec2(rec[b + 0], rec[b + 1])
             cn = wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4])
@@ -565,6 +570,8 @@ def composite_tile_kernels(C: int):
                 bl[tb + q] = start - 1
         for jj in range(jmax - start + 1):
             j = jmax - jj
+            if j - PREFETCH_AHEAD >= start:
+                prefetch(rec, ids[j - PREFETCH_AHEAD] * RS)
             g = ids[j]
             b = g * RS
             m = wp.vec2(rec[b + 0], rec[b + 1])

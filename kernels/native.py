@@ -74,6 +74,22 @@ def exp_neg(s: float) -> float:
     ...
 
 
+_PREFETCH = r"""{
+#if !defined(__CUDACC__)
+    __builtin_prefetch(a.data + i);
+#endif
+}
+"""
+
+
+@wp.func_native(_PREFETCH)
+def prefetch(a: wp.array(dtype=float), i: int):
+    """Hint the CPU to fetch the cache line of ``a[i]`` (a no-op on CUDA). The tile kernels read
+    the next Gaussians' records this way: a record's first load is otherwise a cache miss that
+    stalls the tile's thread (about a sixth of the forward's time on the heavy benchmark scene)."""
+    ...
+
+
 _FWD_ROW = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
     const int rb = tb + 16 * r;
     float* T = sT.data + rb;
