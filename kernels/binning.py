@@ -1,17 +1,21 @@
-"""Tile intersection: depth order, exact opacity-aware ellipse/tile tests, keys, tile ranges.
+"""Tile intersection: depth order, exact opacity-aware ellipse/tile tests, per-tile lists.
 
 Gaussians are first sorted by camera depth (a stable float radix sort, so ties keep their index
-order, as gsplat's (tile | depth bits) keys do) and each gets its depth *rank*. Intersections are
-counted and written in index order (sequential memory access) with the key ``tile << rank_bits |
-rank``; a radix sort over only ``tile_bits + rank_bits`` bits (28 for the profile scene) then
-leaves every tile's list sorted front to back, exactly as gsplat orders it.
+order, as gsplat's (tile | depth bits) keys do). Two ways then build every tile's list of
+Gaussians front to back, with the identical result:
+
+* CPU, a counting sort by tile (below: ``gather_sorted_kernel`` ... ``scatter_ids_kernel``): walk
+  the Gaussians in depth order in chunks, count hits per (chunk, tile), scan, scatter. No key
+  sort, and every pass but the tiny scan runs in parallel chunks.
+* CUDA, a key sort: each Gaussian gets its depth *rank*; intersections are counted and written in
+  index order with the key ``tile << rank_bits | rank``, and a radix sort over only
+  ``tile_bits + rank_bits`` bits leaves every tile's list sorted front to back, as gsplat does.
 
 A Gaussian is kept in a tile only if its alpha can reach 1/255 at one of the tile's pixel centres:
 the minimum of the quadratic form over the rectangle of pixel centres is compared with
 ``ln(255 o)``. The compositing loop skips such Gaussians anyway, so the image is unchanged; the
 test only removes dead work.
 """
-
 from __future__ import annotations
 
 import warp as wp

@@ -3,21 +3,23 @@
 ``rasterize_forward`` and ``rasterize_backward`` take and fill ``wp.array`` buffers (as handed over
 by ``wp.jax_callable``) and launch, in order:
 
-forward:  project -> depth sort -> count tiles -> scan -> (one host read of the total) ->
-          write keys -> stable radix sort by tile -> tile ranges -> composite
+forward:  validate -> project -> depth sort -> binning -> splat records (tile kernels) -> composite
+          binning on the CPU: gather in depth order -> count hits per (depth chunk, tile) ->
+          scan (one host read of the total) -> scatter front to back into the tile lists;
+          on CUDA: count -> scan -> write (tile | depth rank) keys -> radix sort -> tile ranges
 backward: composite adjoint -> projection adjoint -> viewmat reduction
 
 Scratch buffers live in a per-device :class:`Workspace` and grow geometrically, so steady-state
-calls allocate nothing. The sorted intersection list of a forward call is kept in one of a small
-ring of slots and found again by the backward through a ``(slot, generation)`` handle; when the
-slot has been reused in between (many renders before one backward), the backward re-bins from
-the saved projection, which gives the identical order.
+calls allocate nothing. The sorted intersection list (and the tile kernels' splat records) of a
+forward call is kept in one of a small ring of slots and found again by the backward through a
+``(slot, generation)`` handle; when the slot has been reused in between (many renders before one
+backward), the backward re-bins from the saved projection, which gives the identical order.
 
-On the CPU a Warp launch runs on one thread; the compositing launches are therefore split into
-bands of tile rows that a small pool of Python threads pulls from a shared counter (Warp releases
-the GIL inside a launch). Each worker has its own gradient accumulators, summed at the end.
+On the CPU a Warp launch runs on one thread; every per-Gaussian pass and the compositing are
+therefore split into chunks (tile rows for the compositing) that worker threads take round-robin
+(:mod:`.parallel`; Warp releases the GIL inside a launch). Each worker has its own gradient
+accumulators, summed at the end in a fixed order, so results do not depend on the thread count.
 """
-
 from __future__ import annotations
 
 import threading
