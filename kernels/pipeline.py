@@ -291,8 +291,9 @@ def _bin_by_counting(ws: Workspace, order, means2d, conics, opacities, radii, wi
         return ranges, ids[:0], 0
 
     def scatter(_w, j0, j1):
-        wp.launch(scatter_ids_kernel, dim=j1 - j0, inputs=[order] + gauss + [masks] + grid + [j0, chunk_of[(j0, j1)], hist],
-                  outputs=[ids], device=device)
+        wp.launch(scatter_ids_kernel, dim=j1 - j0,
+                  inputs=[order] + gauss + [masks] + grid + [j0, chunk_of[(j0, j1)], hist], outputs=[ids],
+                  device=device)
 
     run_bands(bands, n_threads, scatter, scatter_ids_kernel, device)
     return ranges, ids[:n_isect], n_isect
@@ -315,8 +316,9 @@ def splat_records(ws: Workspace, means2d, conics, opacities, depths, colors, rad
     rec = ws.get("splat_rec", max(1, n * RS), wp.float32)
     if n > 0:
         colf = _flat_floats(ws, colors, n, C)
-        launch_split(splat_records_kernel, n, lambda i0, _w: [means2d, conics, opacities, depths, colf, radii, C, RS, i0],
-                     [rec], means2d.device, threads)
+        launch_split(splat_records_kernel, n,
+                     lambda i0, _w: [means2d, conics, opacities, depths, colf, radii, C, RS, i0], [rec],
+                     means2d.device, threads)
     return rec
 
 
