@@ -40,3 +40,9 @@ def test_vs_splax_help():
     out = _run("vs_splax.py", "--help")
     assert out.returncode == 0
     assert "splax==0.2.3" in out.stdout
+
+
+def test_critical_path_help():
+    out = _run("critical_path.py", "--help")
+    assert out.returncode == 0
+    assert "--scenes" in out.stdout and "critical path" in out.stdout
