@@ -246,6 +246,7 @@ def _bin_by_key_sort(ws: Workspace, order, means2d, conics, opacities, radii, wi
 
 #: depth-rank chunks per worker thread of the CPU binning (the near chunks hit more tiles)
 BIN_CHUNKS_PER_THREAD = 4
+MAX_BIN_CHUNKS = 64
 
 
 def _bin_by_counting(ws: Workspace, order, means2d, conics, opacities, radii, width: int, height: int, tile: int,
@@ -258,7 +259,8 @@ def _bin_by_counting(ws: Workspace, order, means2d, conics, opacities, radii, wi
     tiles_x, tiles_y = grid_dims(width, height, tile)
     n_tiles = tiles_x * tiles_y
     n_threads = n_threads_for(device, threads) if n >= 4096 else 1
-    n_chunks = n_threads * BIN_CHUNKS_PER_THREAD if n_threads > 1 else 1
+    # capped: the scan over (tile, chunk) is serial
+    n_chunks = min(n_threads * BIN_CHUNKS_PER_THREAD, MAX_BIN_CHUNKS) if n_threads > 1 else 1
     bounds = [(n * c // n_chunks, n * (c + 1) // n_chunks) for c in range(n_chunks)]
     bands = [bd for bd in bounds if bd[1] > bd[0]]
     chunk_of = {bd: c for c, bd in enumerate(bands)}
