@@ -43,9 +43,9 @@ def main() -> None:
     state = {"on": False, "worker0": 0.0, "crit": 0.0, "call": 0.0}
     run_bands = par.run_bands
 
-    def timed_run_bands(bands, n_threads, fn, kernel=None, device=None):
+    def timed_run_bands(bands, n_threads, fn, kernel=None, device=None, **kw):
         if not state["on"]:
-            return run_bands(bands, n_threads, fn, kernel, device)
+            return run_bands(bands, n_threads, fn, kernel, device, **kw)
         per: dict[int, float] = {}
         lock = threading.Lock()
 
@@ -55,7 +55,7 @@ def main() -> None:
             with lock:
                 per[w] = per.get(w, 0.0) + time.thread_time() - c
 
-        run_bands(bands, n_threads, timed, kernel, device)
+        run_bands(bands, n_threads, timed, kernel, device, **kw)
         state["worker0"] += per.get(0, 0.0)  # ran on the calling thread, counted in "call" too
         state["crit"] += max(per.values(), default=0.0)
 
