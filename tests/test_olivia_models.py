@@ -91,6 +91,22 @@ def test_text_db_retrieves_by_cosine():
     assert i == 2 and np.allclose(e, [0, 0, 1])
 
 
+def test_view_entries_are_retrieved_by_their_view_and_give_their_caption():
+    db = llu.TextDB(np.eye(3, dtype=np.float32), ["go straight", "keep to the right", "keep to the left"],
+                    np.array([0, 1, 2], np.int32))
+    view = np.array([0.6, 0.0, 0.8], np.float32)  # a view whose E_I is far from every caption's E_T
+    text = np.array([[0.0, 0.0, 2.0]], np.float32)  # its caption says keep left
+    db2 = llu.add_view_entries(db, view[None], text, ["you should yield"])
+    assert len(db2.captions) == 4 and db2.actions[-1] == ACTIONS.index("yield")
+    np.testing.assert_allclose(db2.key_matrix[:3], db.embeddings)  # offline entries keep their text keys
+    i, e = db2.retrieve(view)
+    assert i == 3 and np.allclose(e, [0, 0, 1])  # found by the view, it hands over the caption's E_T
+    with pytest.raises(ValueError):
+        llu.add_view_entries(db, view[None], text, ["a", "b"])
+    with pytest.raises(ValueError):
+        llu.TextDB(np.eye(3, dtype=np.float32), ["a", "b"], np.array([0, 1, 2]))
+
+
 # -- SC-CLIP encoders --------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

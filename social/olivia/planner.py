@@ -64,6 +64,7 @@ class OliviaConfig:
     safety: float = 30.0  # 1/m²: penalty on a plan's intrusion into the people's predicted space (0: off)
     safety_margin: float = 0.45  # m, edge to edge: the intimate zone a plan must keep from everyone seen
     text_gate: float = 0.9  # E_T is used only when the retrieved caption's cosine similarity to E_I reaches it
+    view_gate: float = 0.95  # the same for D_T entries an LLU update keyed by their views' E_I (image to image)
     arrive_radius: float = 1.0  # m: within it the NC drives straight at the goal (0: off)
 
 
@@ -73,7 +74,9 @@ N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
 def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau: float,
              prior: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """(index into D_T of the retrieved E_T, vote vector (N_VOTES,)) for the unit E_I (D,);
-    ``db`` (M, D) unit caption embeddings, ``db_actions`` (M,) int action of each caption (-1: none).
+    ``db`` (M, D) D_T's unit retrieval keys (:attr:`TextDB.key_matrix`: the caption embeddings,
+    or for an LLU update's entries the E_I of their views), ``db_actions`` (M,) int action of each
+    caption (-1: none).
 
     The ``k`` captions most cosine-similar to E_I vote for their actions (weights
     ``softmax(similarity / tau)``); E_T is the caption most similar to E_I among those of the
@@ -96,16 +99,19 @@ def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau
 
 
 @partial(jax.jit, static_argnames=("cfg", "use_image", "use_lidar", "use_text"))
-def _plan(clip_p, tpn_p, tsm_p, db, db_actions, image, points, valid, goal, prior, cfg: OliviaConfig, use_image: bool,
-          use_lidar: bool, use_text: bool):
+def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, is_view, db_actions, image, points, valid, goal, prior,
+          cfg: OliviaConfig, use_image: bool, use_lidar: bool, use_text: bool):
     e_i = normalize(SCCLIP(cfg.clip).apply({"params": clip_p}, image[None], method=SCCLIP.encode_image))
-    j, votes = retrieve(db, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau, cfg.vote_memory * prior)
+    # the TPN reads E_I from the encoder it was trained with (an LLU update moves only retrieval's)
+    e_i_tpn = e_i if tpn_clip_p is None else normalize(
+        SCCLIP(cfg.clip).apply({"params": tpn_clip_p}, image[None], method=SCCLIP.encode_image))
+    j, votes = retrieve(keys, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau, cfg.vote_memory * prior)
     e_t = db[j][None]
-    sim = db[j] @ e_i[0]
+    sim = keys[j] @ e_i[0]
     # a caption retrieved with low similarity describes another scene (its action is right about
     # half the time on held-out views); the TSM then ranks without E_T, as trained with text dropout
-    use_text = jnp.asarray(use_text) & (sim >= cfg.text_gate)
-    trajs, scores = TPN(cfg.tpn).apply({"params": tpn_p}, e_i, points[None], valid[None], goal[None],
+    use_text = jnp.asarray(use_text) & (sim >= jnp.where(is_view[j], cfg.view_gate, cfg.text_gate))
+    trajs, scores = TPN(cfg.tpn).apply({"params": tpn_p}, e_i_tpn, points[None], valid[None], goal[None],
                                        jnp.full((1,), use_image), jnp.full((1,), use_lidar), with_scores=True)
     logits = TSM(cfg.tsm).apply({"params": tsm_p}, e_t, trajs, jnp.full((1,), use_text))
     logits = select_logits(logits, scores, cfg.score_weight)
@@ -175,7 +181,9 @@ def safety_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndar
 
 
 class OliviaNav:
-    """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees; db: D_T; variant: one of
+    """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees, and after an LLU update
+    ``clip_tpn``: the SC-CLIP the TPN was trained with, which gives the TPN its E_I while the
+    updated ``clip`` gives retrieval's (without it, ``clip`` gives both); db: D_T; variant: one of
     :data:`VARIANTS`."""
 
     def __init__(self, params: dict, db: TextDB, cfg: OliviaConfig = OliviaConfig(), variant: str = "olivia"):
@@ -186,6 +194,9 @@ class OliviaNav:
                 raise ValueError(f"params lack the {k!r} network")
         self.params, self.db, self.cfg, self.variant = params, db, cfg, variant
         self._db = jnp.asarray(db.embeddings)
+        self._keys = jnp.asarray(db.key_matrix)
+        # entries keyed by a view (an LLU update's) are gated on image-to-image similarity
+        self._is_view = jnp.asarray(np.any(db.key_matrix != db.embeddings, axis=1))
         self._db_actions = jnp.asarray(db.actions, jnp.int32)
 
     def with_variant(self, variant: str) -> "OliviaNav":
@@ -197,10 +208,12 @@ class OliviaNav:
         (used with ``cfg.vote_memory`` > 0; None: none)."""
         v = self.variant
         prior = jnp.zeros(N_VOTES, F32) if prior is None else jnp.asarray(prior, F32)
-        trajs, logits, j, e_i, votes, sim = _plan(self.params["clip"], self.params["tpn"], self.params["tsm"], self._db,
-                                             self._db_actions, jnp.asarray(image), jnp.asarray(points, F32),
-                                             jnp.asarray(points_valid), jnp.asarray(goal, F32), prior, self.cfg,
-                                             v != "no_image", v != "no_lidar", v != "no_text")
+        p = self.params
+        trajs, logits, j, e_i, votes, sim = _plan(p["clip"], p.get("clip_tpn"), p["tpn"], p["tsm"], self._db, self._keys,
+                                                  self._is_view, self._db_actions, jnp.asarray(image),
+                                                  jnp.asarray(points, F32), jnp.asarray(points_valid),
+                                                  jnp.asarray(goal, F32), prior, self.cfg, v != "no_image",
+                                                  v != "no_lidar", v != "no_text")
         j = int(j)
         logits = np.asarray(logits)
         return PlanResult(np.asarray(trajs), logits, int(np.argmax(logits)), self.db.captions[j],
