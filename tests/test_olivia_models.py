@@ -370,3 +370,19 @@ def test_safety_cost_penalises_the_plan_into_a_person():
     c = safety_cost(np.stack([straight, aside]), np.array([[3.0, 0.0]]), np.array([[-1.0, 0.0]]), 0.45)
     assert c[0] > 0.5 and c[1] < 0.25 * c[0]
     assert np.all(safety_cost(np.stack([straight, aside]), np.zeros((0, 2)), np.zeros((0, 2)), 0.45) == 0)
+
+
+def test_side_cost_asks_to_pass_head_on_people_on_their_left():
+    from splatsearch.social.olivia.planner import side_cost
+
+    xs = 0.24 * np.arange(1, HORIZON + 1)
+    right = np.stack([xs, -np.minimum(0.6 * xs, 0.9)], -1)
+    left = np.stack([xs, np.minimum(0.6 * xs, 0.9)], -1)
+    plans = np.stack([right, left])
+    # a person 4 m ahead walking head-on: keeping right lets them by on the robot's left (free)
+    c = side_cost(plans, np.array([[4.0, 0.0]]), np.array([[-1.0, 0.0]]))
+    assert c[0] == 0 and c[1] == 1
+    # the same person crossing (90°), or standing, is no one's "oncoming": no side is asked for
+    assert np.all(side_cost(plans, np.array([[4.0, 2.0]]), np.array([[0.0, -1.0]])) == 0)
+    assert np.all(side_cost(plans, np.array([[4.0, 0.0]]), np.array([[0.0, 0.0]])) == 0)
+    assert np.all(side_cost(plans, np.zeros((0, 2)), np.zeros((0, 2))) == 0)

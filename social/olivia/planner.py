@@ -63,6 +63,7 @@ class OliviaConfig:
     consistency: float = 30.0  # 1/m²: penalty on a plan's mean squared distance from the one being followed
     safety: float = 30.0  # 1/m²: penalty on a plan's intrusion into the people's predicted space (0: off)
     safety_margin: float = 0.45  # m, edge to edge: the intimate zone a plan must keep from everyone seen
+    pass_right: float = 0.0  # penalty on a plan that lets a head-on person go by on the robot's right (0: off)
     text_gate: float = 0.9  # E_T is used only when the retrieved caption's cosine similarity to E_I reaches it
     view_gate: float = 0.95  # the same for D_T entries an LLU update keyed by their views' E_I (image to image)
     arrive_radius: float = 1.0  # m: within it the NC drives straight at the goal (0: off)
@@ -180,6 +181,34 @@ def safety_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndar
     return np.sum(w * np.max(np.clip(margin - gap, 0.0, None), -1) ** 2, -1)
 
 
+def side_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarray, cone: float = 0.44,
+              near: float = 1.0) -> np.ndarray:
+    """(K,) how many of the people seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2)
+    m/s (constant velocity), walk head-on toward plan ``trajs_world`` (K, horizon, 2) (within
+    ``cone`` rad of its heading, faster than 0.3 m/s) and go by on its right within ``near`` m
+    (edge to edge) at the closest approach: right-hand traffic passes them on the left."""
+    K, H = trajs_world.shape[:2]
+    if len(people) == 0:
+        return np.zeros(K)
+    tq = FUTURE_STRIDE * 0.1 * np.arange(1, H + 1)
+    pred = people[None] + tq[:, None, None] * people_vel[None]  # (H, P, 2)
+    # the plan's direction of travel (first to last pose), not its pose-to-pose heading, which
+    # turns away from the person while stepping aside
+    chord = trajs_world[:, -1] - trajs_world[:, 0]
+    chord = chord / np.maximum(np.linalg.norm(chord, axis=-1, keepdims=True), 1e-6)
+    head = np.broadcast_to(chord[:, None], trajs_world.shape)  # (K, H, 2)
+    rel = pred[None] - trajs_world[:, :, None]  # (K, H, P, 2)
+    dist = np.linalg.norm(rel, axis=-1)
+    i = np.argmin(dist, axis=1)  # (K, P) closest approach
+    take = lambda a: np.take_along_axis(a, i[:, None, :], 1)[:, 0]  # noqa: E731
+    cross = take(head[:, :, None, 0] * rel[..., 1] - head[:, :, None, 1] * rel[..., 0])  # > 0: on the left
+    speed = np.linalg.norm(people_vel, axis=-1)
+    along = take(np.sum(head[:, :, None, :] * people_vel[None, None], -1))
+    oncoming = (along < -np.cos(cone) * speed[None]) & (speed[None] > 0.3)
+    gap = take(dist) - (ROBOT_RADIUS + PERSON_RADIUS)
+    return np.sum(oncoming & (cross < 0) & (gap < near), -1).astype(np.float64)
+
+
 class OliviaNav:
     """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees, and after an LLU update
     ``clip_tpn``: the SC-CLIP the TPN was trained with, which gives the TPN its E_I while the
@@ -267,6 +296,8 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
                 vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
                 score = score - cfg.safety * safety_cost(cand, people[-1][seen], vel[seen], cfg.safety_margin)
+                if cfg.pass_right > 0:
+                    score = score - cfg.pass_right * side_cost(cand, people[-1][seen], vel[seen])
                 # and the map: a plan through a door post is refused move by move, forever
                 clr = np.asarray(field_lookup(field, jnp.asarray(cand, F32)))
                 score = score - cfg.safety * np.sum(np.clip(ROBOT_RADIUS + WALL_MARGIN - clr, 0.0, None) ** 2, -1) * 100.0
