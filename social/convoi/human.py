@@ -216,8 +216,8 @@ def walker_cost(pos, speed, off, world: WalkerWorld, people, people_vel, active,
     rel = people[None] - pos[:, :, None]  # (C, H, P, 2)
     cross = heading[..., None, 0] * rel[..., 1] - heading[..., None, 1] * rel[..., 0]  # > 0: person on the left
     # head-on only (within ``oncoming_cone`` of anti-parallel, walking faster than 0.3 m/s): a person
-    # crossing diagonally passes on whichever side their path takes them, and forcing them to the
-    # left made the walker cross their path (it stepped 1.5 m aside at a door)
+    # crossing diagonally passes on whichever side their path takes them; forcing them to the
+    # walker's left would make it cross their path
     ped_speed = jnp.linalg.norm(people_vel, axis=-1)  # (H, P)
     along = jnp.sum(heading[:, :, None, :] * people_vel[None], -1)  # (C, H, P)
     oncoming = (along < -jnp.cos(cfg.oncoming_cone) * ped_speed[None]) & (ped_speed[None] > 0.3)
@@ -268,7 +268,8 @@ def walker_step(carry: WalkerCarry, world: WalkerWorld, seed_key, cfg: HumanWalk
     w = jnp.clip(w, vel[1] - 2.5 * 0.1, vel[1] + 2.5 * 0.1)
     # a standing candidate still steps aside (its shift blends in over shift_time): drive that
     # sidestep, or a walker that stopped beside a door post could never get clear of it
-    v_ref = jnp.where(fac[k] > 0, speed[k, 0], jnp.linalg.norm(path[9] - path[0]) / 0.9)
+    m = max(min(9, cfg.horizon - 1), 1)
+    v_ref = jnp.where(fac[k] > 0, speed[k, 0], jnp.linalg.norm(path[m] - path[0]) / (0.1 * m))
     v = v_ref * jnp.clip(jnp.cos(err), 0.0, 1.0)
     v = jnp.where(jnp.abs(err) > 1.2, 0.0, v)
     v = jnp.clip(v, vel[0] - cfg.acc * 0.1, vel[0] + cfg.acc * 0.1)
