@@ -1,7 +1,8 @@
 """OLiVia-Nav planning rate (target >= 5 Hz on 2 CPU cores, thesis 3.5.1.2).
 
 One planning cycle = sensors (egocentric render + two LiDAR sweeps + goal) + SC-CLIP image
-encoder + D_T retrieval + TPN + TSM, and one PID step. Uses the trained checkpoint at
+encoder + D_T retrieval + TPN + TSM, and one PID step; measured as trained ("offline") and after an
+LLU update ("after_llu": a second image encoding for the TPN, 50 more D_T entries). Uses the trained checkpoint at
 ``$OLIVIA_CHECKPOINT`` (default ``runs/olivia/olivia.npz``) when it exists, else freshly
 initialised networks of the same size (the rate does not depend on the weights).
 
@@ -17,7 +18,7 @@ import pytest
 
 from splatsearch.social.convoi.controller import follow_step, follower_init
 from splatsearch.social.convoi.geometry import robot_to_world
-from splatsearch.social.olivia.llu import TextDB
+from splatsearch.social.olivia.llu import TextDB, add_view_entries
 from splatsearch.social.convoi.perception import visible_people
 from splatsearch.social.olivia.planner import OliviaConfig, OliviaNav, consistency_cost, safety_cost
 from splatsearch.social.olivia.features import observe
@@ -45,10 +46,21 @@ def _planner() -> OliviaNav:
     return OliviaNav(params, db, cfg)
 
 
-@pytest.fixture(scope="module")
-def setup():
+def _after_update(planner: OliviaNav) -> OliviaNav:
+    """The planner after one LLU update: a second image encoder (the TPN keeps the one it was
+    trained with) and 50 view-keyed D_T entries."""
+    rng = np.random.default_rng(1)
+    e = rng.normal(size=(50, planner.cfg.clip.embed)).astype(np.float32)
+    db = add_view_entries(planner.db, e, e[::-1], ["you should yield"] * 50)
+    return OliviaNav(dict(planner.params, clip_tpn=planner.params["clip"]), db, planner.cfg)
+
+
+@pytest.fixture(scope="module", params=["offline", "after_llu"])
+def setup(request):
     scn = make_scenario("static_groups", 1000)
     planner = _planner()
+    if request.param == "after_llu":
+        planner = _after_update(planner)
     pose = np.asarray(scn.start, np.float32)
     people = np.asarray(scn.peds.pos)
     path = scn.global_path()

@@ -91,6 +91,22 @@ def test_text_db_retrieves_by_cosine():
     assert i == 2 and np.allclose(e, [0, 0, 1])
 
 
+def test_view_entries_are_retrieved_by_their_view_and_give_their_caption():
+    db = llu.TextDB(np.eye(3, dtype=np.float32), ["go straight", "keep to the right", "keep to the left"],
+                    np.array([0, 1, 2], np.int32))
+    view = np.array([0.6, 0.0, 0.8], np.float32)  # a view whose E_I is far from every caption's E_T
+    text = np.array([[0.0, 0.0, 2.0]], np.float32)  # its caption says keep left
+    db2 = llu.add_view_entries(db, view[None], text, ["you should yield"])
+    assert len(db2.captions) == 4 and db2.actions[-1] == ACTIONS.index("yield")
+    np.testing.assert_allclose(db2.key_matrix[:3], db.embeddings)  # offline entries keep their text keys
+    i, e = db2.retrieve(view)
+    assert i == 3 and np.allclose(e, [0, 0, 1])  # found by the view, it hands over the caption's E_T
+    with pytest.raises(ValueError):
+        llu.add_view_entries(db, view[None], text, ["a", "b"])
+    with pytest.raises(ValueError):
+        llu.TextDB(np.eye(3, dtype=np.float32), ["a", "b"], np.array([0, 1, 2]))
+
+
 # -- SC-CLIP encoders --------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -354,3 +370,19 @@ def test_safety_cost_penalises_the_plan_into_a_person():
     c = safety_cost(np.stack([straight, aside]), np.array([[3.0, 0.0]]), np.array([[-1.0, 0.0]]), 0.45)
     assert c[0] > 0.5 and c[1] < 0.25 * c[0]
     assert np.all(safety_cost(np.stack([straight, aside]), np.zeros((0, 2)), np.zeros((0, 2)), 0.45) == 0)
+
+
+def test_side_cost_asks_to_pass_head_on_people_on_their_left():
+    from splatsearch.social.olivia.planner import side_cost
+
+    xs = 0.24 * np.arange(1, HORIZON + 1)
+    right = np.stack([xs, -np.minimum(0.6 * xs, 0.9)], -1)
+    left = np.stack([xs, np.minimum(0.6 * xs, 0.9)], -1)
+    plans = np.stack([right, left])
+    # a person 4 m ahead walking head-on: keeping right lets them by on the robot's left (free)
+    c = side_cost(plans, np.array([[4.0, 0.0]]), np.array([[-1.0, 0.0]]))
+    assert c[0] == 0 and c[1] == 1
+    # the same person crossing (90°), or standing, is no one's "oncoming": no side is asked for
+    assert np.all(side_cost(plans, np.array([[4.0, 2.0]]), np.array([[0.0, -1.0]])) == 0)
+    assert np.all(side_cost(plans, np.array([[4.0, 0.0]]), np.array([[0.0, 0.0]])) == 0)
+    assert np.all(side_cost(plans, np.zeros((0, 2)), np.zeros((0, 2))) == 0)

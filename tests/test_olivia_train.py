@@ -10,7 +10,7 @@ import pytest
 
 from splatsearch.social.olivia import train as ot
 from splatsearch.social.olivia import sc_clip
-from splatsearch.social.olivia.llu import LLUConfig, TextDB, build_text_db, llu_update
+from splatsearch.social.olivia.llu import LLUConfig, TextDB, add_view_entries, build_text_db, llu_update
 from splatsearch.social.olivia.render import IMG_H, IMG_W
 from splatsearch.social.olivia.tokenizer import DEFAULT_TOKENIZER as TOK
 
@@ -96,7 +96,14 @@ def test_checkpoint_round_trip(tmp_path):
     np.testing.assert_array_equal(np.asarray(params["tsm"]["Dense_0"]["kernel"]), np.arange(6.0).reshape(2, 3))
     assert params["tpn"]["query"].shape == (1, 2, 4)
     assert db2.captions == db.captions and np.array_equal(db2.embeddings, db.embeddings)
+    assert db2.keys is None
     assert meta["note"] == "x"
+    # an LLU update's view-keyed entries survive the round trip
+    db3 = add_view_entries(db, np.ones((1, 4), np.float32), np.ones((1, 4), np.float32), ["you should yield"])
+    ot.save_checkpoint(path, _toy_params(), db=db3, meta={"config": {}})
+    _, db4, _ = ot.load_checkpoint(path)
+    np.testing.assert_array_equal(db4.key_matrix, db3.key_matrix)
+    assert db4.captions == db3.captions
 
 
 def test_corrupt_checkpoints_are_rejected(tmp_path):
@@ -291,3 +298,31 @@ def test_counterfactual_rows_make_the_tsm_select_by_the_caption():
     # trained on the real captions alone, it picks the straight plan whatever the caption says
     g = train(False)
     assert np.mean(np.argmax(np.asarray(g(jnp.asarray(left), jnp.asarray(trajs))), 1) == want) < 0.2
+
+
+@pytest.mark.slow
+def test_after_an_update_the_tpn_keeps_its_encoder_and_view_entries_pass_the_gate():
+    from splatsearch.social.olivia import tpn
+    from splatsearch.social.olivia import tsm
+    from splatsearch.social.olivia.features import GOAL_DIM
+    from splatsearch.social.olivia.lidar import N_POINTS
+    from splatsearch.social.olivia.planner import OliviaConfig, OliviaNav
+
+    cfg = OliviaConfig()
+    k = jax.random.split(jax.random.PRNGKey(0), 4)
+    params = {"clip": sc_clip.init_sc_clip(k[0], cfg.clip), "tpn": tpn.init_tpn(k[1], cfg.tpn),
+              "tsm": tsm.init_tsm(k[2], cfg.tsm)}
+    db = build_text_db(params["clip"], CAPTIONS, cfg.clip)
+    rng = np.random.default_rng(0)
+    obs = (rng.integers(0, 255, (IMG_H, IMG_W, 3)).astype(np.uint8), rng.normal(size=(N_POINTS, 4)).astype(np.float32),
+           np.ones(N_POINTS, bool), rng.normal(size=GOAL_DIM).astype(np.float32))
+    before = OliviaNav(params, db, cfg).plan(*obs)
+    moved = sc_clip.init_sc_clip(k[3], cfg.clip)  # stands in for the LLU-updated encoders
+    same_tpn = OliviaNav(dict(params, clip=moved, clip_tpn=params["clip"]), db, cfg).plan(*obs)
+    np.testing.assert_allclose(same_tpn.trajs, before.trajs, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(OliviaNav(dict(params, clip=moved), db, cfg).plan(*obs).trajs, before.trajs, atol=1e-5)
+    # a view-keyed entry for this very view is retrieved at similarity ~1 and opens the gate
+    e_i = ot.encode_all_images(moved, obs[0][None], cfg.clip)
+    dbv = add_view_entries(db, e_i, ot.encode_all_texts(moved, ["you should yield"], cfg.clip), ["you should yield"])
+    r = OliviaNav(dict(params, clip=moved, clip_tpn=params["clip"]), dbv, cfg).plan(*obs)
+    assert r.caption == "you should yield" and r.similarity > cfg.view_gate

@@ -74,3 +74,17 @@ def test_route_slows_for_corners():
     k = np.argmin(v)
     assert v[k] < 0.5 and 3.0 < s[k] < 4.7  # in the 1 m-radius bend
     assert np.all(np.diff(v[:k]) <= 1e-6)  # brakes into it
+
+
+def test_walker_lets_a_diagonal_walker_by_and_clears_a_door_post():
+    """Doorway dev seed 305: the person comes through the door and walks diagonally away to the
+    robot's right. A walker that passed every approaching person on the right stepped 1.5 m aside
+    into their path, then stood beside the door post to the end (its sidestep was tracked at
+    speed 0)."""
+    from splatsearch.social.convoi.scenarios import make_scenario
+
+    scn = make_scenario("doorway", 305)
+    res = run_walker(scn)
+    assert res.reached and int(res.robot_contacts.sum()) == 0 and res.wall_hits == 0
+    assert res.robot[:, 1].min() > -0.5  # it no longer crosses to the right of the person's path
+    assert min_distance_to_people(res.robot[:, :2], res.people, res.active, 0.25, 0.25) > 0.3

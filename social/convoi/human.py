@@ -51,7 +51,8 @@ class HumanWalkerConfig:
     a walker accepts in a turn (m/s²) and a_dec: its braking (m/s²) for corners; offsets: lateral
     shifts of the route (m, + = left); speeds: speed factors; horizon: rollout steps; shift_length:
     arc length (m) over which a shift is blended in (or shift_time s when it walks slower); personal, intimate: Hall's zones (m, edge to
-    edge); group_margin: distance (m) from the line between two group members below which the
+    edge); oncoming_cone: a person counts as oncoming (to be passed on the right) when walking
+    within this angle (rad, 25°) of head-on; group_margin: distance (m) from the line between two group members below which the
     walker would split them; w_*: cost weights."""
 
     v_max: float = 0.6
@@ -78,6 +79,7 @@ class HumanWalkerConfig:
     w_change: float = 0.15
     lookahead: float = 0.45
     k_heading: float = 2.5
+    oncoming_cone: float = 0.44
 
 
 class Route(NamedTuple):
@@ -213,7 +215,12 @@ def walker_cost(pos, speed, off, world: WalkerWorld, people, people_vel, active,
     heading = heading / jnp.maximum(jnp.linalg.norm(heading, axis=-1, keepdims=True), 1e-6)
     rel = people[None] - pos[:, :, None]  # (C, H, P, 2)
     cross = heading[..., None, 0] * rel[..., 1] - heading[..., None, 1] * rel[..., 0]  # > 0: person on the left
-    oncoming = jnp.sum(heading[:, :, None, :] * people_vel[None], -1) < -0.3
+    # head-on only (within ``oncoming_cone`` of anti-parallel, walking faster than 0.3 m/s): a person
+    # crossing diagonally passes on whichever side their path takes them; forcing them to the
+    # walker's left would make it cross their path
+    ped_speed = jnp.linalg.norm(people_vel, axis=-1)  # (H, P)
+    along = jnp.sum(heading[:, :, None, :] * people_vel[None], -1)  # (C, H, P)
+    oncoming = (along < -jnp.cos(cfg.oncoming_cone) * ped_speed[None]) & (ped_speed[None] > 0.3)
     near = (d < 1.0) & oncoming
     side = jnp.sum(jnp.where(near & (cross < 0), 1.0, 0.0), (1, 2)) / H
     # groups: never through the line between two members of a group
@@ -259,7 +266,11 @@ def walker_step(carry: WalkerCarry, world: WalkerWorld, seed_key, cfg: HumanWalk
     err = jnp.arctan2(jnp.sin(err), jnp.cos(err))
     w = jnp.clip(cfg.k_heading * err, -cfg.w_max, cfg.w_max)
     w = jnp.clip(w, vel[1] - 2.5 * 0.1, vel[1] + 2.5 * 0.1)
-    v = speed[k, 0] * jnp.clip(jnp.cos(err), 0.0, 1.0)
+    # a standing candidate still steps aside (its shift blends in over shift_time): drive that
+    # sidestep, or a walker that stopped beside a door post could never get clear of it
+    m = max(min(9, cfg.horizon - 1), 1)
+    v_ref = jnp.where(fac[k] > 0, speed[k, 0], jnp.linalg.norm(path[m] - path[0]) / (0.1 * m))
+    v = v_ref * jnp.clip(jnp.cos(err), 0.0, 1.0)
     v = jnp.where(jnp.abs(err) > 1.2, 0.0, v)
     v = jnp.clip(v, vel[0] - cfg.acc * 0.1, vel[0] + cfg.acc * 0.1)
     v = jnp.clip(v, 0.0, cfg.v_max)

@@ -44,18 +44,49 @@ def llu_loss(e_img, e_text, mu: float = 0.05, symmetric: bool = True, targets=No
 
 @dataclass
 class TextDB:
-    """D_T: unit text embeddings (N, D), their long captions and action indices (N,)."""
+    """D_T: unit text embeddings (N, D), their long captions and action indices (N,).
+
+    ``keys`` (N, D) unit, optional: what E_I is compared with to retrieve each entry. None (the
+    thesis): the text embeddings themselves. An LLU update (:func:`add_view_entries`) adds its
+    buffer's captions keyed by the E_I of the views they describe, so that a view like one the
+    update was given retrieves that caption at an image-to-image similarity near 1."""
 
     embeddings: np.ndarray
     captions: list
     actions: np.ndarray
+    keys: np.ndarray | None = None
+
+    def __post_init__(self):
+        n = len(self.embeddings)
+        if len(self.captions) != n or len(self.actions) != n:
+            raise ValueError(f"D_T needs one caption and one action per embedding: {n} embeddings, "
+                             f"{len(self.captions)} captions, {len(self.actions)} actions")
+        if self.keys is not None and np.shape(self.keys) != np.shape(self.embeddings):
+            raise ValueError(f"D_T keys {np.shape(self.keys)} must match its embeddings {np.shape(self.embeddings)}")
+
+    @property
+    def key_matrix(self) -> np.ndarray:
+        """(N, D) the retrieval keys (the embeddings where no keys are stored)."""
+        return self.embeddings if self.keys is None else self.keys
 
     def retrieve(self, e_img) -> tuple[int, np.ndarray]:
-        """Index of the caption most cosine-similar to E_I (D,), and its E_T (D,)."""
+        """Index of the entry whose key is most cosine-similar to E_I (D,), and its E_T (D,)."""
         e = np.asarray(e_img, np.float32)
         e = e / max(float(np.linalg.norm(e)), 1e-6)
-        i = int(np.argmax(self.embeddings @ e))
+        i = int(np.argmax(self.key_matrix @ e))
         return i, self.embeddings[i]
+
+
+def add_view_entries(db: TextDB, e_img: np.ndarray, e_text: np.ndarray, captions: list) -> TextDB:
+    """D_T plus one entry per buffer view: E_T ``e_text`` (B, D) of its caption, retrieved by the
+    view's own E_I ``e_img`` (B, D) (both normalised here). Duplicated captions stay, one per
+    view: the same caption is right in several places."""
+    if not (len(e_img) == len(e_text) == len(captions)):
+        raise ValueError(f"need one E_I and one E_T per caption, got {len(e_img)}, {len(e_text)}, {len(captions)}")
+    unit = lambda a: np.asarray(a, np.float32) / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-6)  # noqa: E731
+    return TextDB(np.concatenate([db.embeddings, unit(e_text)]), list(db.captions) + list(captions),
+                  np.concatenate([db.actions, [action_from_text(c) for c in captions]]).astype(np.int32),
+                  np.concatenate([db.key_matrix, unit(e_img)]))
 
 
 def build_text_db(params, captions: list, cfg: SCCLIPConfig = SCCLIPConfig(), tok: Tokenizer = DEFAULT_TOKENIZER,
@@ -75,7 +106,9 @@ def build_text_db(params, captions: list, cfg: SCCLIPConfig = SCCLIPConfig(), to
 @dataclass
 class LLUConfig:
     """size: |B| images per update; mu: eq 4 temperature; steps: optimiser steps per update;
-    lr: AdamW learning rate; weight_decay; batch: images per step."""
+    lr: AdamW learning rate; weight_decay; batch: images per step; view_entries: D_T also gets
+    each buffer caption keyed by its view's E_I (:func:`add_view_entries`; False: the thesis'
+    D_T, text keys only)."""
 
     size: int = 50
     mu: float = 0.05
@@ -83,6 +116,7 @@ class LLUConfig:
     lr: float = 1e-4
     weight_decay: float = 0.01
     batch: int = 50
+    view_entries: bool = True
 
 
 @dataclass

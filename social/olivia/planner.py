@@ -63,7 +63,9 @@ class OliviaConfig:
     consistency: float = 30.0  # 1/m²: penalty on a plan's mean squared distance from the one being followed
     safety: float = 30.0  # 1/m²: penalty on a plan's intrusion into the people's predicted space (0: off)
     safety_margin: float = 0.45  # m, edge to edge: the intimate zone a plan must keep from everyone seen
+    pass_right: float = 0.0  # penalty on a plan that lets a head-on person go by on the robot's right (0: off)
     text_gate: float = 0.9  # E_T is used only when the retrieved caption's cosine similarity to E_I reaches it
+    view_gate: float = 0.95  # the same for D_T entries an LLU update keyed by their views' E_I (image to image)
     arrive_radius: float = 1.0  # m: within it the NC drives straight at the goal (0: off)
 
 
@@ -73,7 +75,9 @@ N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
 def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau: float,
              prior: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """(index into D_T of the retrieved E_T, vote vector (N_VOTES,)) for the unit E_I (D,);
-    ``db`` (M, D) unit caption embeddings, ``db_actions`` (M,) int action of each caption (-1: none).
+    ``db`` (M, D) D_T's unit retrieval keys (:attr:`TextDB.key_matrix`: the caption embeddings,
+    or for an LLU update's entries the E_I of their views), ``db_actions`` (M,) int action of each
+    caption (-1: none).
 
     The ``k`` captions most cosine-similar to E_I vote for their actions (weights
     ``softmax(similarity / tau)``); E_T is the caption most similar to E_I among those of the
@@ -96,16 +100,19 @@ def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau
 
 
 @partial(jax.jit, static_argnames=("cfg", "use_image", "use_lidar", "use_text"))
-def _plan(clip_p, tpn_p, tsm_p, db, db_actions, image, points, valid, goal, prior, cfg: OliviaConfig, use_image: bool,
-          use_lidar: bool, use_text: bool):
+def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, is_view, db_actions, image, points, valid, goal, prior,
+          cfg: OliviaConfig, use_image: bool, use_lidar: bool, use_text: bool):
     e_i = normalize(SCCLIP(cfg.clip).apply({"params": clip_p}, image[None], method=SCCLIP.encode_image))
-    j, votes = retrieve(db, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau, cfg.vote_memory * prior)
+    # the TPN reads E_I from the encoder it was trained with (an LLU update moves only retrieval's)
+    e_i_tpn = e_i if tpn_clip_p is None else normalize(
+        SCCLIP(cfg.clip).apply({"params": tpn_clip_p}, image[None], method=SCCLIP.encode_image))
+    j, votes = retrieve(keys, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau, cfg.vote_memory * prior)
     e_t = db[j][None]
-    sim = db[j] @ e_i[0]
+    sim = keys[j] @ e_i[0]
     # a caption retrieved with low similarity describes another scene (its action is right about
     # half the time on held-out views); the TSM then ranks without E_T, as trained with text dropout
-    use_text = jnp.asarray(use_text) & (sim >= cfg.text_gate)
-    trajs, scores = TPN(cfg.tpn).apply({"params": tpn_p}, e_i, points[None], valid[None], goal[None],
+    use_text = jnp.asarray(use_text) & (sim >= jnp.where(is_view[j], cfg.view_gate, cfg.text_gate))
+    trajs, scores = TPN(cfg.tpn).apply({"params": tpn_p}, e_i_tpn, points[None], valid[None], goal[None],
                                        jnp.full((1,), use_image), jnp.full((1,), use_lidar), with_scores=True)
     logits = TSM(cfg.tsm).apply({"params": tsm_p}, e_t, trajs, jnp.full((1,), use_text))
     logits = select_logits(logits, scores, cfg.score_weight)
@@ -174,8 +181,38 @@ def safety_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndar
     return np.sum(w * np.max(np.clip(margin - gap, 0.0, None), -1) ** 2, -1)
 
 
+def side_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarray, cone: float = 0.44,
+              near: float = 1.0) -> np.ndarray:
+    """(K,) how many of the people seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2)
+    m/s (constant velocity), walk head-on toward plan ``trajs_world`` (K, horizon, 2) (within
+    ``cone`` rad of its heading, faster than 0.3 m/s) and go by on its right within ``near`` m
+    (edge to edge) at the closest approach: right-hand traffic passes them on the left."""
+    K, H = trajs_world.shape[:2]
+    if len(people) == 0:
+        return np.zeros(K)
+    tq = FUTURE_STRIDE * 0.1 * np.arange(1, H + 1)
+    pred = people[None] + tq[:, None, None] * people_vel[None]  # (H, P, 2)
+    # the plan's direction of travel (first to last pose), not its pose-to-pose heading, which
+    # turns away from the person while stepping aside
+    chord = trajs_world[:, -1] - trajs_world[:, 0]
+    chord = chord / np.maximum(np.linalg.norm(chord, axis=-1, keepdims=True), 1e-6)
+    head = np.broadcast_to(chord[:, None], trajs_world.shape)  # (K, H, 2)
+    rel = pred[None] - trajs_world[:, :, None]  # (K, H, P, 2)
+    dist = np.linalg.norm(rel, axis=-1)
+    i = np.argmin(dist, axis=1)  # (K, P) closest approach
+    take = lambda a: np.take_along_axis(a, i[:, None, :], 1)[:, 0]  # noqa: E731
+    cross = take(head[:, :, None, 0] * rel[..., 1] - head[:, :, None, 1] * rel[..., 0])  # > 0: on the left
+    speed = np.linalg.norm(people_vel, axis=-1)
+    along = take(np.sum(head[:, :, None, :] * people_vel[None, None], -1))
+    oncoming = (along < -np.cos(cone) * speed[None]) & (speed[None] > 0.3)
+    gap = take(dist) - (ROBOT_RADIUS + PERSON_RADIUS)
+    return np.sum(oncoming & (cross < 0) & (gap < near), -1).astype(np.float64)
+
+
 class OliviaNav:
-    """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees; db: D_T; variant: one of
+    """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees, and after an LLU update
+    ``clip_tpn``: the SC-CLIP the TPN was trained with, which gives the TPN its E_I while the
+    updated ``clip`` gives retrieval's (without it, ``clip`` gives both); db: D_T; variant: one of
     :data:`VARIANTS`."""
 
     def __init__(self, params: dict, db: TextDB, cfg: OliviaConfig = OliviaConfig(), variant: str = "olivia"):
@@ -186,6 +223,9 @@ class OliviaNav:
                 raise ValueError(f"params lack the {k!r} network")
         self.params, self.db, self.cfg, self.variant = params, db, cfg, variant
         self._db = jnp.asarray(db.embeddings)
+        self._keys = jnp.asarray(db.key_matrix)
+        # entries keyed by a view (an LLU update's) are gated on image-to-image similarity
+        self._is_view = jnp.asarray(np.any(db.key_matrix != db.embeddings, axis=1))
         self._db_actions = jnp.asarray(db.actions, jnp.int32)
 
     def with_variant(self, variant: str) -> "OliviaNav":
@@ -197,10 +237,12 @@ class OliviaNav:
         (used with ``cfg.vote_memory`` > 0; None: none)."""
         v = self.variant
         prior = jnp.zeros(N_VOTES, F32) if prior is None else jnp.asarray(prior, F32)
-        trajs, logits, j, e_i, votes, sim = _plan(self.params["clip"], self.params["tpn"], self.params["tsm"], self._db,
-                                             self._db_actions, jnp.asarray(image), jnp.asarray(points, F32),
-                                             jnp.asarray(points_valid), jnp.asarray(goal, F32), prior, self.cfg,
-                                             v != "no_image", v != "no_lidar", v != "no_text")
+        p = self.params
+        trajs, logits, j, e_i, votes, sim = _plan(p["clip"], p.get("clip_tpn"), p["tpn"], p["tsm"], self._db, self._keys,
+                                                  self._is_view, self._db_actions, jnp.asarray(image),
+                                                  jnp.asarray(points, F32), jnp.asarray(points_valid),
+                                                  jnp.asarray(goal, F32), prior, self.cfg, v != "no_image",
+                                                  v != "no_lidar", v != "no_text")
         j = int(j)
         logits = np.asarray(logits)
         return PlanResult(np.asarray(trajs), logits, int(np.argmax(logits)), self.db.captions[j],
@@ -254,6 +296,8 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
                 vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
                 score = score - cfg.safety * safety_cost(cand, people[-1][seen], vel[seen], cfg.safety_margin)
+                if cfg.pass_right > 0:
+                    score = score - cfg.pass_right * side_cost(cand, people[-1][seen], vel[seen])
                 # and the map: a plan through a door post is refused move by move, forever
                 clr = np.asarray(field_lookup(field, jnp.asarray(cand, F32)))
                 score = score - cfg.safety * np.sum(np.clip(ROBOT_RADIUS + WALL_MARGIN - clr, 0.0, None) ** 2, -1) * 100.0

@@ -41,7 +41,7 @@ import optax
 from splatsearch.io import atomic_write_bytes
 
 from . import sc_clip, tpn, tsm
-from .llu import LLUBuffer, LLUConfig, TextDB, build_text_db, llu_update
+from .llu import LLUBuffer, LLUConfig, TextDB, add_view_entries, build_text_db, llu_update
 from .planner import (
     VARIANT_LABELS,
     VARIANTS,
@@ -114,6 +114,8 @@ def save_checkpoint(path: str, params: dict, *, db: TextDB | None = None, meta: 
         arrays["db/embeddings"] = np.asarray(db.embeddings, np.float32)
         arrays["db/captions"] = np.asarray(db.captions, dtype=np.str_)
         arrays["db/actions"] = np.asarray(db.actions, np.int32)
+        if db.keys is not None:
+            arrays["db/keys"] = np.asarray(db.keys, np.float32)
     header = {"format": FORMAT, "version": VERSION, "digest": _digest(arrays), "meta": meta or {}}
     buf = io.BytesIO()
     np.savez(buf, __meta__=np.asarray(json.dumps(header)), **arrays)
@@ -145,7 +147,8 @@ def load_checkpoint(path: str) -> tuple[dict, TextDB | None, dict]:
     db = None
     if "db/embeddings" in arrays:
         db = TextDB(arrays["db/embeddings"].astype(np.float32), [str(s) for s in arrays["db/captions"]],
-                    arrays["db/actions"].astype(np.int32))
+                    arrays["db/actions"].astype(np.int32),
+                    arrays["db/keys"].astype(np.float32) if "db/keys" in arrays else None)
     return params, db, header.get("meta", {})
 
 
@@ -161,7 +164,7 @@ def config_to_meta(cfg: OliviaConfig) -> dict:
     return {"clip": dataclasses.asdict(cfg.clip), "tpn": dataclasses.asdict(cfg.tpn), "tsm": dataclasses.asdict(cfg.tsm),
             "replan_every": cfg.replan_every, "retrieve_k": cfg.retrieve_k, "retrieve_tau": cfg.retrieve_tau,
             "vote_memory": cfg.vote_memory, "score_weight": cfg.score_weight, "consistency": cfg.consistency,
-            "safety": cfg.safety, "safety_margin": cfg.safety_margin, "text_gate": cfg.text_gate,
+            "safety": cfg.safety, "safety_margin": cfg.safety_margin, "text_gate": cfg.text_gate, "view_gate": cfg.view_gate, "pass_right": cfg.pass_right,
             "arrive_radius": cfg.arrive_radius}
 
 
@@ -176,7 +179,7 @@ def config_from_meta(meta: dict) -> OliviaConfig:
                         replan_every=int(c.get("replan_every", 2)), retrieve_k=int(c.get("retrieve_k", 1)),
                         retrieve_tau=float(c.get("retrieve_tau", 0.05)), vote_memory=float(c.get("vote_memory", 0.0)),
                         score_weight=float(c.get("score_weight", 1.0 if t["score"] else 0.0)),
-                        **{k: float(c[k]) for k in ("consistency", "safety", "safety_margin", "text_gate", "arrive_radius")
+                        **{k: float(c[k]) for k in ("consistency", "safety", "safety_margin", "text_gate", "view_gate", "pass_right", "arrive_radius")
                            if k in c})
 
 
@@ -700,7 +703,13 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
     new_clip, losses = llu_update(planner.params["clip"], imgs, captions, llu, planner.cfg.clip)
     base = list(train_captions) if train_captions is not None else list(planner.db.captions)
     db = build_text_db(new_clip, base + captions, planner.cfg.clip)
-    after_planner = OliviaNav(dict(planner.params, clip=new_clip), db, planner.cfg, planner.variant)
+    if llu.view_entries:
+        db = add_view_entries(db, encode_all_images(new_clip, imgs, planner.cfg.clip),
+                              encode_all_texts(new_clip, captions, planner.cfg.clip), captions)
+    # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans
+    after_planner = OliviaNav(dict(planner.params, clip=new_clip,
+                                   clip_tpn=planner.params.get("clip_tpn", planner.params["clip"])),
+                              db, planner.cfg, planner.variant)
     effect = llu_effect(planner, after_planner, buf, captions)
     log(f"LLU: |B| = {len(buf.images)}, eq 4 loss {losses[0]:.3f} -> {losses[-1]:.3f}; |D_T| {len(planner.db.captions)} "
         f"-> {len(db.captions)}; on the buffer's views the retrieved caption's action is right "
