@@ -149,7 +149,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
     needs_track = [flag for flag, on in (("--track-from-gt", args.track_from_gt),
                                          ("--track-rgbd-odometry", args.track_rgbd_odometry),
                                          ("--track-planar", args.track_planar),
-                                         ("--pose-refine", args.pose_refine)) if on]
+                                         ("--pose-refine", args.pose_refine),
+                                         ("--track-coarse-iters", args.track_coarse_iters is not None),
+                                         ("--track-patience", args.track_patience is not None),
+                                         ("--track-prior-weight", args.track_prior_weight is not None)) if on]
     if needs_track and not args.track:
         raise ValueError(f"{', '.join(needs_track)}: only with --track (these options act on tracked poses)")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
@@ -453,9 +456,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--keyframe-every", type=int, default=5,
                    help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
     m.add_argument("--track-iters", type=int, default=40,
-                   help="most tracking Adam steps per frame at the tracking size (default 40)")
+                   help="most tracking Adam steps per frame at the tracking size, after the coarse ones (default 40; "
+                        "the fast setting: 8 with --track-coarse-iters 30 --track-patience 5)")
     m.add_argument("--track-coarse-iters", type=int, default=None,
-                   help="most tracking Adam steps first on images 2x smaller still "
+                   help="most tracking Adam steps first on images 4x smaller still "
                         "(0: none; default 0)")
     m.add_argument("--track-patience", type=int, default=None,
                    help="a tracking stage stops once its loss has not fallen by a fraction "

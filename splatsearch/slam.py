@@ -109,7 +109,8 @@ class TrackerConfig:
     iters: most Adam steps per frame at the tracking resolution (``downscale``). coarse_iters:
     most Adam steps first on images ``coarse_downscale`` times smaller still (0: no coarse
     stage); a coarse step costs what its pixels cost, and it brings the pose near enough that a
-    few full-size steps finish it. coarse_lr_scale: the coarse stage's step sizes relative to
+    few full-size steps finish it (skipped when the coarse images would be under 32 pixels on
+    a side). coarse_lr_scale: the coarse stage's step sizes relative to
     ``lr_rot`` / ``lr_trans``. tol, patience: a stage stops early once its best loss has not
     fallen by a fraction ``tol`` for ``patience`` steps (patience 0: always run every step).
     lr_rot (rad), lr_trans (m): Adam step sizes of the se(3) increment. lr_final: the step sizes
@@ -145,9 +146,9 @@ class TrackerConfig:
     lr_trans: float = 2e-3
     lr_final: float = 1.0
     coarse_iters: int = 0
-    coarse_downscale: int = 2
+    coarse_downscale: int = 4
     coarse_lr_scale: float = 1.0
-    tol: float = 0.0
+    tol: float = 1e-3
     patience: int = 0
     sil_thresh: float = 0.99
     w_color: float = 0.5
@@ -399,7 +400,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
     rgb, depth, K, width, height = _shrink(rgb, depth, K, cfg.downscale)
     stages = []  # (rgb, depth, K, W, H, steps, lr scale), coarse first
     s = cfg.coarse_downscale
-    if cfg.coarse_iters > 0 and s > 1 and min(width, height) // s >= 8:
+    if cfg.coarse_iters > 0 and s > 1 and min(width, height) // s >= 32:  # smaller: too few pixels to steer
         stages.append((*_shrink(rgb, depth, K, s), cfg.coarse_iters, cfg.coarse_lr_scale))
     stages.append((rgb, depth, K, width, height, cfg.iters, 1.0))
     if _bucket(len(rows)) < gmap.capacity:
