@@ -81,7 +81,15 @@ def main(argv=None) -> int:
     p.add_argument("--downscale", type=int, default=2, help="TUM image size divisor (default 2: 320x240)")
     p.add_argument("--frames", type=int, default=100, help="simulator walk length (default 100)")
     p.add_argument("--seed", type=int, default=0, help="dev house seed (default 0; never >= 1000)")
-    p.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
+    d = TrackerConfig()
+    p.add_argument("--track-iters", type=int, default=d.iters,
+                   help=f"most tracking Adam steps per frame (default {d.iters})")
+    p.add_argument("--track-coarse-iters", type=int, default=d.coarse_iters,
+                   help=f"most coarse-stage tracking steps (default {d.coarse_iters})")
+    p.add_argument("--track-patience", type=int, default=d.patience,
+                   help=f"early-stop patience of a tracking stage (0: off; default {d.patience})")
+    p.add_argument("--prior-weight", type=float, default=d.prior_weight,
+                   help=f"odometry prior weight (default {d.prior_weight:g})")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
     p.add_argument("--rgbd-odometry", action="store_true", help="start tracking from OpenCV RGB-D odometry")
     p.add_argument("--planar", action="store_true", help="track planar motions only (ground robot)")
@@ -96,7 +104,8 @@ def main(argv=None) -> int:
     if a.seed >= 1000:
         p.error("seeds >= 1000 are evaluation houses: never tuned on")
     tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry,
-                         planar=a.planar)
+                         planar=a.planar, coarse_iters=a.track_coarse_iters, patience=a.track_patience,
+                         prior_weight=a.prior_weight)
     for d in (REAL, SIM):
         d.update(pose_refine=a.pose_refine, pose_planar=a.planar, exposure=a.exposure)
     global REAL_REFINE

@@ -139,10 +139,20 @@ def _cmd_map(args: argparse.Namespace) -> int:
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale,
                          rgbd_odometry=args.track_rgbd_odometry, planar=args.track_planar)
+    if args.track_coarse_iters is not None:
+        tcfg.coarse_iters = args.track_coarse_iters
+    if args.track_patience is not None:
+        tcfg.patience = args.track_patience
+    if args.track_prior_weight is not None:
+        tcfg.prior_weight = args.track_prior_weight
+    tcfg.validate()
     needs_track = [flag for flag, on in (("--track-from-gt", args.track_from_gt),
                                          ("--track-rgbd-odometry", args.track_rgbd_odometry),
                                          ("--track-planar", args.track_planar),
-                                         ("--pose-refine", args.pose_refine)) if on]
+                                         ("--pose-refine", args.pose_refine),
+                                         ("--track-coarse-iters", args.track_coarse_iters is not None),
+                                         ("--track-patience", args.track_patience is not None),
+                                         ("--track-prior-weight", args.track_prior_weight is not None)) if on]
     if needs_track and not args.track:
         raise ValueError(f"{', '.join(needs_track)}: only with --track (these options act on tracked poses)")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
@@ -445,7 +455,18 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                                                          "(default 0)")
     m.add_argument("--keyframe-every", type=int, default=5,
                    help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
-    m.add_argument("--track-iters", type=int, default=40, help="tracking Adam steps per frame (default 40)")
+    m.add_argument("--track-iters", type=int, default=40,
+                   help="most tracking Adam steps per frame at the tracking size, after the coarse ones (default 40; "
+                        "the fast setting: 8 with --track-coarse-iters 30 --track-patience 5)")
+    m.add_argument("--track-coarse-iters", type=int, default=None,
+                   help="most tracking Adam steps first on images 4x smaller still "
+                        "(0: none; default 0)")
+    m.add_argument("--track-patience", type=int, default=None,
+                   help="a tracking stage stops once its loss has not fallen by a fraction "
+                        "1e-3 for this many steps (0: run every step; default 0)")
+    m.add_argument("--track-prior-weight", type=float, default=None,
+                   help="weight of the odometry prior in the tracking loss, per squared standard deviation of the "
+                        "odometry's noise (0: odometry is only the initial guess; default 0.001)")
     m.add_argument("--track-rgbd-odometry", action="store_true",
                    help="with --track: start each frame's tracking from OpenCV's RGB-D odometry between a "
                         "render of the map and the frame (one render, a few ms), then run --track-iters "

@@ -98,8 +98,13 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
         "median_track_cpu_s": float(np.median([r.track.cpu_seconds for r in slam.results if r.track])) if t_tr
         else None,
         "mean_track_s": float(np.mean(t_tr)) if t_tr else None, "mean_map_s": float(np.mean(t_map)) if t_map else None,
+        "mean_track_cpu_s": float(np.mean([r.track.cpu_seconds for r in slam.results if r.track])) if t_tr
+        else None,
+        "mean_track_steps": float(np.mean([r.track.steps for r in slam.results if r.track])) if t_tr else None,
         "per_frame": [{"frame": int(i), "status": r.status, "track_s": round(r.t_track, 4), "map_s": round(r.t_map, 4),
                        "track_status": r.track.status if r.track else None,
+                       "track_cpu_s": round(r.track.cpu_seconds, 4) if r.track else None,
+                       "track_steps": r.track.steps if r.track else None,
                        "track_loss": _finite(r.track.loss) if r.track else None} for i, r in zip(done, slam.results)],
     }
     bad = [(int(i), r.status) for i, r in zip(done, slam.results) if r.status.startswith("skipped")]

@@ -4,15 +4,18 @@ Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map froz
 the new frame is refined by Adam through the rasterizer's ``viewmat`` gradient. The loss is L1 on
 depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette > ``sil_thresh``)
 with valid observed depth, leaving out pixels whose depth error exceeds ``outlier_k`` times the
-median (depth edges, moving things). The pose update is a left-multiplied se(3) increment
-``exp(xi) @ viewmat`` with xi = (rotation vector in rad, translation in m), both in the camera
-frame; Adam scales each part by its own learning rate, so steps are well conditioned whatever
-the scene's size. All iterations run in one jitted ``lax.scan``; the pose with the lowest loss is
-kept.
+median (depth edges, moving things); those pixels are chosen once per stage, at the pose the
+stage starts from. The pose update is a left-multiplied se(3) increment ``exp(xi) @ viewmat``
+with xi = (rotation vector in rad, translation in m), both in the camera frame; Adam scales each
+part by its own learning rate, so steps are well conditioned whatever the scene's size. With
+the robot's odometry, a quadratic prior on xi (scaled by the odometry's noise over the frame)
+joins the loss. An optional coarse stage on smaller images runs first; each stage is one jitted
+``lax.while_loop`` that stops early once its loss stops falling, and the pose with the lowest
+loss is kept.
 
 A frame is not mapped (and its pose is the motion model's prediction) when its depth is all
-invalid, its given pose is not finite, or tracking diverged: a non-finite loss, a final loss
-above ``diverge_ratio`` times the prediction's, or a correction beyond ``max_rot`` /
+invalid, its given pose is not finite, or tracking diverged: a non-finite loss, a last step's
+loss above ``diverge_ratio`` times the prediction's, or a correction beyond ``max_rot`` /
 ``max_trans``. :class:`SLAM` reports each such frame in its :class:`FrameResult`.
 """
 
@@ -103,30 +106,50 @@ def pose_distance(vm_a, vm_b) -> tuple[float, float]:
 class TrackerConfig:
     """Tracking settings.
 
-    iters: Adam steps per frame. lr_rot (rad), lr_trans (m): Adam step sizes of the se(3)
-    increment. lr_final: the step sizes decay exponentially to this fraction of themselves by the
-    last step (1: constant); Adam's steps keep their size near the optimum, so a constant step
-    leaves the pose jittering by about one step. sil_thresh: silhouette above which a pixel is
-    trusted. w_color: weight of the colour L1 (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are
-    left out (0: keep all). min_valid_frac: fewer trusted pixels than this fraction of the image
-    means the map does not cover the view: tracking is skipped. diverge_ratio, max_rot (rad),
-    max_trans (m): divergence tests (see the module docstring). submap_margin: Gaussians whose
-    means project within this fraction of the image outside the view take part. downscale:
-    track on images this many times smaller (area-averaged colour, subsampled depth): the
-    rasterizer's cost falls with the pixel count. rgbd_odometry: before the Adam steps, align a
-    render of the map at the initial pose to the frame with OpenCV's multi-scale RGB-D odometry
-    (``cv2.Odometry``: ICP + photometric, else photometric alone) and start from its pose when it succeeds within
-    ``max_rot`` / ``max_trans``; one forward render and a few ms of CPU, so fewer Adam steps
-    are needed. planar: a ground robot's camera moves in the world's horizontal plane and turns
-    about the world's vertical axis (world z up): the update is restricted to those 3 degrees
-    of freedom (rotation about world z through the camera centre, translation along world x, y),
-    so height, roll and pitch keep the initial guess's values and cannot drift.
+    iters: most Adam steps per frame at the tracking resolution (``downscale``). coarse_iters:
+    most Adam steps first on images ``coarse_downscale`` times smaller still (0: no coarse
+    stage); a coarse step costs what its pixels cost, and it brings the pose near enough that a
+    few full-size steps finish it (skipped when the coarse images would be under 32 pixels on
+    a side). coarse_lr_scale: the coarse stage's step sizes relative to
+    ``lr_rot`` / ``lr_trans``. tol, patience: a stage stops early once its best loss has not
+    fallen by a fraction ``tol`` for ``patience`` steps (patience 0: always run every step).
+    lr_rot (rad), lr_trans (m): Adam step sizes of the se(3) increment. lr_final: the step sizes
+    decay exponentially to this fraction of themselves by a stage's last step (1: constant).
+    sil_thresh: silhouette above which a pixel is trusted. w_color: weight of the colour L1
+    (SplaTAM: 0.5). outlier_k: pixels with depth error above ``outlier_k`` x median are left out
+    (0: keep all). The trusted pixels are chosen once per stage, at the pose the stage starts
+    from, so every step of a stage minimises the same objective (a mask re-chosen at every step
+    lets the pose lower the loss by pushing hard pixels out of it). min_valid_frac: fewer trusted
+    pixels than this fraction of the image means the map does not cover the view: tracking is
+    skipped. diverge_ratio, max_rot (rad), max_trans (m): divergence tests (see the module
+    docstring). submap_margin: Gaussians whose means project within this fraction of the image
+    outside the view take part. downscale: track on images this many times smaller
+    (area-averaged colour, subsampled depth): the rasterizer's cost falls with the pixel count.
+    rgbd_odometry: before the Adam steps, align a render of the map at the initial pose to the
+    frame with OpenCV's multi-scale RGB-D odometry (``cv2.Odometry``: ICP + photometric, else
+    photometric alone) and start from its pose when it succeeds within ``max_rot`` /
+    ``max_trans``. planar: a ground robot's camera moves in the world's horizontal plane and
+    turns about the world's vertical axis (world z up): the update is restricted to those 3
+    degrees of freedom, so height, roll and pitch keep the initial guess's values.
+
+    Odometry prior (used when :func:`track` gets ``prior_sigma``, which :class:`SLAM` passes
+    when the robot's odometry is given): the loss adds ``prior_weight`` x (|w| / sigma_rot)^2 +
+    (|t| / sigma_trans)^2 for the increment (w rad, t m) from the odometry's prediction, with
+    sigma_rot = ``prior_rot_sigma`` rad and sigma_trans = ``prior_trans_sigma`` x the distance
+    the odometry moved + ``prior_trans_floor`` m (the odometry's noise per frame). Odometry and
+    the image then both count: on flat, weakly textured walls the image alone barely fixes a
+    sideways shift, and a shift there trades against a turn.
     """
 
     iters: int = 40
     lr_rot: float = 2e-3
     lr_trans: float = 2e-3
     lr_final: float = 1.0
+    coarse_iters: int = 0
+    coarse_downscale: int = 4
+    coarse_lr_scale: float = 1.0
+    tol: float = 1e-3
+    patience: int = 0
     sil_thresh: float = 0.99
     w_color: float = 0.5
     outlier_k: float = 10.0
@@ -138,26 +161,44 @@ class TrackerConfig:
     downscale: int = 1
     rgbd_odometry: bool = False
     planar: bool = False
+    prior_weight: float = 1e-3
+    prior_rot_sigma: float = 0.01
+    prior_trans_sigma: float = 0.05
+    prior_trans_floor: float = 1e-3
 
     def validate(self) -> None:
         if self.iters < 1:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
-        if not (self.lr_rot > 0 and self.lr_trans > 0):
-            raise ValueError("lr_rot and lr_trans must be > 0")
+        if self.coarse_iters < 0 or self.coarse_downscale < 1 or self.patience < 0 or self.tol < 0:
+            raise ValueError("coarse_iters >= 0, coarse_downscale >= 1, patience >= 0 and tol >= 0 are required")
+        if not (self.lr_rot > 0 and self.lr_trans > 0 and self.coarse_lr_scale > 0):
+            raise ValueError("lr_rot, lr_trans and coarse_lr_scale must be > 0")
         if not 0 < self.lr_final <= 1:
             raise ValueError(f"lr_final must be in (0, 1], got {self.lr_final}")
         if self.downscale < 1:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not 0 < self.sil_thresh < 1:
             raise ValueError(f"sil_thresh must be in (0, 1), got {self.sil_thresh}")
+        if self.prior_weight < 0 or not (self.prior_rot_sigma > 0 and self.prior_trans_sigma >= 0
+                                         and self.prior_trans_floor > 0):
+            raise ValueError("prior_weight >= 0, prior_rot_sigma > 0, prior_trans_sigma >= 0 and "
+                             "prior_trans_floor > 0 are required")
+
+    def prior_sigma(self, odometry_step) -> tuple[float, float]:
+        """(sigma_rot rad, sigma_trans m) of the odometry prior for an odometry motion
+        ``odometry_step`` (4, 4) between two frames."""
+        dist = float(np.linalg.norm(np.asarray(odometry_step, np.float64)[:3, 3]))
+        return self.prior_rot_sigma, self.prior_trans_sigma * dist + self.prior_trans_floor
 
 
 @dataclass
 class TrackResult:
-    """viewmat (4, 4) refined world-to-camera; loss (final best) and loss0 (where the Adam
-    steps start: the initial pose, or the RGB-D odometry's); valid_frac: trusted pixel fraction at the initial pose; status "ok", "diverged" or
-    "no_overlap"; seconds: wall time; cpu_seconds: process CPU time (all threads), which on a
-    shared machine shows the cost better than the wall time."""
+    """viewmat (4, 4) refined world-to-camera; loss (final best, at the tracking resolution) and
+    loss0 (the same loss where the Adam steps start: the initial pose, or the RGB-D odometry's);
+    valid_frac: trusted pixel fraction at the initial pose; status "ok", "diverged" or
+    "no_overlap"; steps: Adam steps run (all stages); seconds: wall time; cpu_seconds: process
+    CPU time (all threads), which on a shared machine shows the cost better than the wall
+    time."""
 
     viewmat: np.ndarray
     loss: float
@@ -166,71 +207,113 @@ class TrackResult:
     status: str
     seconds: float
     cpu_seconds: float = 0.0
+    steps: int = 0
 
 
 _TRACK_FNS: dict = {}
 
 
-def _track_fn(K: np.ndarray, W: int, H: int, cfg: TrackerConfig):
-    key = (np.asarray(K, np.float32).tobytes(), W, H, cfg.iters, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh,
-           cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final)
+def _track_fn(levels: tuple, cfg: TrackerConfig):
+    """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
+    key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
+           cfg.tol, cfg.patience)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
-    Kj = jnp.asarray(K, jnp.float32)
     planar = cfg.planar
     lrs = jnp.array([cfg.lr_rot] + [cfg.lr_trans] * 2 if planar else [cfg.lr_rot] * 3 + [cfg.lr_trans] * 3,
                     jnp.float32)
     adam = optax.adam(1.0)  # unit steps, scaled per component by ``lrs``
     sil, w_c, ok_k = cfg.sil_thresh, cfg.w_color, cfg.outlier_k
+    tol, patience = cfg.tol, cfg.patience
 
-    def loss_fn(xi, margs, rgb, depth, vm0):
-        out = rasterize(*margs, perturb_viewmat(vm0, xi), Kj, W, H, render_mode="RGB+D", validate=False)
-        d_err = jnp.abs(out.depth[..., 0] - depth)
-        m = (out.alpha[..., 0] > sil) & (depth > 0)
-        if ok_k > 0:
-            med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
-            m = m & (d_err <= ok_k * jnp.where(jnp.isfinite(med), med, jnp.inf))
-        mf = jax.lax.stop_gradient(m.astype(jnp.float32))
-        n = jnp.maximum(mf.sum(), 1.0)
-        c_err = jnp.abs(out.image - rgb).sum(-1)
-        return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n, mf.mean()
+    def make_level(Kb, W, H):
+        Kj = jnp.asarray(np.frombuffer(Kb, np.float32).reshape(3, 3))
 
-    def loss_p(p, margs, rgb, depth, vm0, basis):
-        return loss_fn(basis @ p, margs, rgb, depth, vm0)
+        def render(xi, margs, vm_ref):
+            return rasterize(*margs, perturb_viewmat(vm_ref, xi), Kj, W, H, render_mode="RGB+D", validate=False)
 
-    vg = jax.value_and_grad(loss_p, has_aux=True)
+        def mask_at(xi, margs, depth, vm_ref):
+            """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier."""
+            out = render(xi, margs, vm_ref)
+            d_err = jnp.abs(out.depth[..., 0] - depth)
+            m = (out.alpha[..., 0] > sil) & (depth > 0)
+            if ok_k > 0:
+                med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
+                m = m & (d_err <= ok_k * jnp.where(jnp.isfinite(med), med, jnp.inf))
+            return m.astype(jnp.float32)
 
-    @jax.jit
-    def run(margs, rgb, depth, vm0):
-        basis = planar_basis(vm0) if planar else jnp.eye(6, dtype=jnp.float32)
-        xi0 = jnp.zeros(basis.shape[1], jnp.float32)
+        def loss(p, margs, rgb, depth, vm_ref, basis, mf, pw):
+            xi = basis @ p
+            out = render(xi, margs, vm_ref)
+            n = jnp.maximum(mf.sum(), 1.0)
+            d_err = jnp.abs(out.depth[..., 0] - depth)
+            c_err = jnp.abs(out.image - rgb).sum(-1)
+            return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n + jnp.sum(pw * xi * xi)
 
-        decay = jnp.log(jnp.float32(cfg.lr_final)) / max(cfg.iters - 1, 1)
+        return mask_at, loss, jax.value_and_grad(loss)
 
-        def body(carry, k):
-            xi, st, best_xi, best_loss = carry
-            (loss, _), g = vg(xi, margs, rgb, depth, vm0, basis)
-            better = loss < best_loss  # NaN compares False: a NaN step is never kept
-            best_xi = jnp.where(better, xi, best_xi)
-            best_loss = jnp.where(better, loss, best_loss)
+    fns = [make_level(Kb, W, H) for Kb, W, H, _, _ in levels]
+
+    def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
+        """Adam steps from p on one level; returns (best p, its loss, steps run)."""
+        mask_at, loss, vg = fn
+        mf = mask_at(basis @ p, margs, depth, vm_ref)
+        decay = jnp.log(jnp.float32(cfg.lr_final)) / max(n_steps - 1, 1)
+
+        def cond(c):
+            k, _, _, _, _, stall = c
+            go = k < n_steps
+            return go & (stall < patience) if patience > 0 else go
+
+        def body(c):
+            k, p, st, best_p, best_loss, stall = c
+            val, g = vg(p, margs, rgb, depth, vm_ref, basis, mf, pw)
+            progress = val < best_loss * (1.0 - tol)
+            better = val < best_loss  # NaN compares False: a NaN step is never kept
+            best_p = jnp.where(better, p, best_p)
+            best_loss = jnp.where(better, val, best_loss)
+            stall = jnp.where(progress, 0, stall + 1)
             g = jnp.where(jnp.isfinite(g), g, 0.0)
             upd, st = adam.update(g, st)
-            return (xi + upd * lrs * jnp.exp(decay * k), st, best_xi, best_loss), loss
+            p = p + upd * lrs * lr_scale * jnp.exp(decay * k.astype(jnp.float32))
+            return k + 1, p, st, best_p, best_loss, stall
 
-        loss0, frac0 = loss_p(xi0, margs, rgb, depth, vm0, basis)
-        carry = (xi0, adam.init(xi0), xi0, jnp.asarray(jnp.inf, jnp.float32))
-        (xi, st, best_xi, best_loss), losses = jax.lax.scan(body, carry, jnp.arange(cfg.iters, dtype=jnp.float32))
-        # the last update has not been scored yet
-        last, _ = loss_p(xi, margs, rgb, depth, vm0, basis)
+        c = (jnp.int32(0), p, adam.init(p), p, jnp.asarray(jnp.inf, jnp.float32), jnp.int32(0))
+        k, p_last, _, best_p, best_loss, _ = jax.lax.while_loop(cond, body, c)
+        last = loss(p_last, margs, rgb, depth, vm_ref, basis, mf, pw)  # the last update is not scored yet
         better = last < best_loss
-        best_xi = jnp.where(better, xi, best_xi)
-        best_loss = jnp.where(better, last, best_loss)
-        return perturb_viewmat(vm0, basis @ best_xi), best_loss, loss0, frac0
+        return jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last
+
+    @jax.jit
+    def run(margs, images, vm_ref, xi_start, pw):
+        basis = planar_basis(vm_ref) if planar else jnp.eye(6, dtype=jnp.float32)
+        p0 = basis.T @ xi_start  # the basis is orthonormal
+        p, steps, frac0 = p0, jnp.int32(0), None
+        for (rgb, depth), fn, (_, _, _, n_steps, lr_scale) in zip(images, fns, levels):
+            p, best_loss, k, mf, last = stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw)
+            frac0 = mf.mean() if frac0 is None else frac0  # the first stage's pixels are chosen at p0
+            steps = steps + k
+        rgb, depth = images[-1]
+        loss0 = fns[-1][1](p0, margs, rgb, depth, vm_ref, basis, mf, pw)  # on the last stage's pixels
+        return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last
 
     if len(_TRACK_FNS) > 8:
         _TRACK_FNS.pop(next(iter(_TRACK_FNS)))
     _TRACK_FNS[key] = run
     return run
+
+
+def _shrink(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, s: int):
+    """(rgb, depth, K, W, H) of a frame ``s`` times smaller: area-averaged colour, subsampled
+    depth (averaging would invent depths across edges)."""
+    H, W = depth.shape
+    w, h = W // s, H // s
+    if s == 1:
+        return rgb, depth, K, W, H
+    K = K.copy()
+    K[:2] /= s
+    return (cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA),
+            np.ascontiguousarray(depth[s // 2::s, s // 2::s][:h, :w]), K, w, h)
 
 
 def visible_rows(gmap: GaussianMap, viewmat, K, W: int, H: int, margin: float) -> np.ndarray:
@@ -280,7 +363,8 @@ def odometry_init(margs, rgb, depth, viewmat, K, width: int, height: int, sil_th
 
 
 def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int,
-          config: TrackerConfig | None = None, **overrides) -> TrackResult:
+          config: TrackerConfig | None = None, *, prior_sigma: tuple[float, float] | None = None,
+          **overrides) -> TrackResult:
     """Refine the world-to-camera pose of an RGB-D frame against a frozen map.
 
     Args:
@@ -288,6 +372,9 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         init_viewmat: (4, 4) initial guess (constant velocity, odometry, ...).
         K: (3, 3) intrinsics; width, height: image size.
         config: :class:`TrackerConfig`; keyword ``overrides`` replace its fields (e.g. iters=80).
+        prior_sigma: (rad, m) standard deviations of ``init_viewmat`` as a prediction (the
+            odometry's noise over this frame, see :meth:`TrackerConfig.prior_sigma`): the loss
+            then keeps the pose near it, weighted by ``config.prior_weight``. None: no prior.
 
     Returns:
         :class:`TrackResult`; on divergence or without overlap its viewmat is ``init_viewmat``.
@@ -307,42 +394,52 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
     if rgb.shape != (height, width, 3) or depth.shape != (height, width):
         raise ValueError(f"expected rgb ({height}, {width}, 3) and depth ({height}, {width}), got {rgb.shape}, "
                          f"{depth.shape}")
-    s = cfg.downscale
-    if s > 1:
-        width, height = width // s, height // s
-        rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
-        depth = np.ascontiguousarray(depth[s // 2::s, s // 2::s][:height, :width])
-        K = K.copy()
-        K[:2] /= s
     if len(rows) == 0:
         return TrackResult(vm0, float("nan"), float("nan"), 0.0, "no_overlap", time.perf_counter() - t0,
                            time.process_time() - c0)
+    rgb, depth, K, width, height = _shrink(rgb, depth, K, cfg.downscale)
+    stages = []  # (rgb, depth, K, W, H, steps, lr scale), coarse first
+    s = cfg.coarse_downscale
+    if cfg.coarse_iters > 0 and s > 1 and min(width, height) // s >= 32:  # smaller: too few pixels to steer
+        stages.append((*_shrink(rgb, depth, K, s), cfg.coarse_iters, cfg.coarse_lr_scale))
+    stages.append((rgb, depth, K, width, height, cfg.iters, 1.0))
     if _bucket(len(rows)) < gmap.capacity:
         params, active, _, _ = _gather_rows(gmap, None, rows)
     else:
         params, active = gmap.params(), gmap.active
     margs = render_args(params, active, gmap.isotropic)
-    vm_start = vm0
+    xi_start = np.zeros(6, np.float32)
     if cfg.rgbd_odometry:
         vm_odo = odometry_init(margs, rgb, depth, vm0, K, int(width), int(height), max_rot=cfg.max_rot,
                                max_trans=cfg.max_trans)
         if vm_odo is not None:
-            vm_start = project_planar(vm_odo, vm0) if cfg.planar else vm_odo
-    run = _track_fn(K, int(width), int(height), cfg)
-    vm, loss, loss0, frac0 = run(margs, jnp.asarray(rgb, jnp.float32), jnp.asarray(depth, jnp.float32),
-                                 jnp.asarray(vm_start))
-    vm, loss, loss0, frac0 = np.asarray(vm), float(loss), float(loss0), float(frac0)
+            d = np.asarray(vm_odo, np.float64) @ np.linalg.inv(vm0.astype(np.float64))
+            xi_start = np.concatenate([cv2.Rodrigues(d[:3, :3])[0].ravel(), d[:3, 3]]).astype(np.float32)
+    pw = np.zeros(6, np.float32)
+    if prior_sigma is not None and cfg.prior_weight > 0:
+        sr, st = prior_sigma
+        pw[:3], pw[3:] = cfg.prior_weight / sr ** 2, cfg.prior_weight / st ** 2
+    levels = tuple((np.asarray(k, np.float32).tobytes(), int(w), int(h), int(n), float(lr))
+                   for _, _, k, w, h, n, lr in stages)
+    images = tuple((jnp.asarray(r, jnp.float32), jnp.asarray(d, jnp.float32)) for r, d, *_ in stages)
+    run = _track_fn(levels, cfg)
+    vm, loss, loss0, frac0, steps, last = run(margs, images, jnp.asarray(vm0), jnp.asarray(xi_start),
+                                              jnp.asarray(pw))
+    vm, loss, loss0, frac0, last = np.asarray(vm), float(loss), float(loss0), float(frac0), float(last)
     status = "ok"
     if frac0 < cfg.min_valid_frac:
         status, vm = "no_overlap", vm0
-    elif not (np.isfinite(loss) and np.all(np.isfinite(vm))) or loss > cfg.diverge_ratio * loss0:
+    # the best pose is never worse than the start, but steps that ran away (the last one's loss
+    # far above the start's, or not finite) mean the optimisation cannot be trusted
+    elif not (np.isfinite(loss) and np.isfinite(last) and np.all(np.isfinite(vm))) or \
+            max(loss, last) > cfg.diverge_ratio * loss0:
         status, vm = "diverged", vm0
     else:
         ang, dist = pose_distance(vm, vm0)
         if ang > cfg.max_rot or dist > cfg.max_trans:
             status, vm = "diverged", vm0
     return TrackResult(vm.astype(np.float32), loss, loss0, frac0, status, time.perf_counter() - t0,
-                       time.process_time() - c0)
+                       time.process_time() - c0, int(steps))
 
 
 # --------------------------------------------------------------------------------------------
@@ -437,8 +534,12 @@ class SLAM:
         depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         first = not any(r.mapped for r in self.results)
         pred = self.predict(odometry)
+        # the odometry's motion since the last frame: how far the prediction can be trusted
+        prior_sigma = None
+        if odometry is not None and self._last_odom is not None and np.all(np.isfinite(odometry)):
+            prior_sigma = self.tcfg.prior_sigma(np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom))
         if prior is not None and np.all(np.isfinite(prior)):
-            pred = np.asarray(prior, np.float32)
+            pred, prior_sigma = np.asarray(prior, np.float32), None
         if odometry is not None and np.all(np.isfinite(odometry)):
             self._last_odom = np.asarray(odometry, np.float64)
         res: FrameResult
@@ -464,7 +565,8 @@ class SLAM:
         tr = None
         t_track = 0.0
         if self.track_enabled and not first:
-            tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg)
+            tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg,
+                       prior_sigma=prior_sigma)
             t_track = tr.seconds
             if tr.status == "diverged":
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))

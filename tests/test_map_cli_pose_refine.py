@@ -21,3 +21,21 @@ def test_map_track_planar_pose_refine_exposure(tmp_path):
     # planar tracking and planar refinement keep the camera height of the first pose
     rows = np.loadtxt(out / "trajectory.txt")
     np.testing.assert_allclose(rows[:, 3], rows[0, 3], atol=1e-4)
+
+
+def test_map_fast_tracking_flags(tmp_path):
+    out = tmp_path / "map"
+    base = ["map", "--seed", "1", "--frames", "4", "--width", "160", "--height", "128", "--iters", "4",
+            "--holdout-every", "0", "--out", str(out)]
+    # the tracking-only flags need --track
+    assert main(base + ["--track-patience", "5"]) == 2
+    assert main(base + ["--track-coarse-iters", "10"]) == 2
+    rc = main(base + ["--track", "--odometry", "--track-iters", "4", "--track-coarse-iters", "6", "--track-patience",
+                      "3", "--track-prior-weight", "0.002"])
+    assert rc == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames_mapped"] == 4 and s["bad_frames"] == []
+    steps = [r["track_steps"] for r in s["timing"]["per_frame"] if r["track_steps"] is not None]
+    # both stages ran (a stage runs at least 1 + patience steps, or all of them): 40x32 coarse, then 160x128
+    assert len(steps) == 3 and all(5 <= n <= 10 for n in steps), steps
+    assert s["timing"]["mean_track_cpu_s"] > 0

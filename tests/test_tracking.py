@@ -135,3 +135,42 @@ def test_bad_tracker_config():
         TrackerConfig(sil_thresh=1.5).validate()
     with pytest.raises(ValueError):
         TrackerConfig(downscale=0).validate()
+
+
+def test_coarse_to_fine_with_early_stop_recovers_a_perturbed_pose(tracking_map):
+    m, f = tracking_map
+    xi = jnp.array([0.008, -0.01, 0.006, 0.01, -0.008, 0.01])
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), xi))
+    ang0, d0 = pose_distance(noisy, f.viewmat)
+    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=30, coarse_iters=40, coarse_downscale=2, tol=1e-3,
+              patience=5)
+    ang, d = pose_distance(r.viewmat, f.viewmat)
+    assert r.status == "ok" and r.loss < r.loss0
+    assert d < 0.5 * d0 and ang < 0.5 * ang0, (d0, ang0, d, ang)
+    # early stopping ran fewer steps than the two stages allow
+    assert 0 < r.steps < 70
+
+
+def test_odometry_prior_keeps_the_pose_near_the_prediction(tracking_map):
+    m, f = tracking_map
+    xi = jnp.array([0.0, 0.0, 0.0, 0.015, 0.0, 0.0])  # 1.5 cm sideways
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), xi))
+    free = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=40)
+    # a prior far tighter than the offset holds the pose at the prediction; a loose one lets the image decide
+    tight = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=40, prior_sigma=(1e-4, 1e-4))
+    loose = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=40, prior_sigma=(1.0, 1.0))
+    moved = lambda r: pose_distance(r.viewmat, noisy)[1]  # noqa: E731
+    assert moved(tight) < 0.002 < moved(free)
+    assert pose_distance(loose.viewmat, free.viewmat)[1] < 0.002
+    assert pose_distance(free.viewmat, f.viewmat)[1] < 0.5 * 0.015
+
+
+def test_prior_sigma_follows_the_odometry_step():
+    cfg = TrackerConfig(prior_rot_sigma=0.02, prior_trans_sigma=0.1, prior_trans_floor=0.001)
+    step = np.eye(4)
+    step[:3, 3] = [0.3, 0.0, 0.4]
+    assert cfg.prior_sigma(step) == pytest.approx((0.02, 0.1 * 0.5 + 0.001))
+    with pytest.raises(ValueError):
+        TrackerConfig(prior_weight=-1).validate()
+    with pytest.raises(ValueError):
+        TrackerConfig(coarse_iters=-1).validate()
