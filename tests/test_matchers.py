@@ -244,3 +244,27 @@ def test_separation_gives_a_learned_completion_the_holes_the_nvsm_gives_it():
     np.testing.assert_array_equal(single.got, holes)
     _views_of(d, 0, learned, "vcicn", holes_mode="interior")
     np.testing.assert_array_equal(learned.got, holes)
+
+
+def test_stored_views_do_not_depend_on_the_agents_completion():
+    """A VCICN agent's NVSM keeps the background in its holes, black; the dumper stores it split
+    off and grey, as the NVSM gives raw and OpenCV views, and leaves an OpenCV agent's views as
+    they were."""
+    from nvsm_views import split_views
+
+    alpha = np.ones((1, 8, 10), np.float32)
+    alpha[:, :, :2] = 0.0  # background at the left border
+    alpha[:, 4:6, 5:7] = 0.0  # an enclosed gap
+    full = alpha < 0.5
+    rgb = np.full((1, 8, 10, 3), 0.8, np.float32)
+    rgb[full] = 0.0
+    out, holes, bg = split_views(rgb, full, alpha, 0.5, 0.5)
+    assert holes.sum() == 4 and holes[0, 4:6, 5:7].all()
+    np.testing.assert_array_equal(bg, full & ~holes)
+    np.testing.assert_allclose(out[bg], 0.5)
+    np.testing.assert_allclose(out[holes], 0.0)
+    # an OpenCV agent's run: holes already interior, background already grey -> unchanged
+    out2, holes2, bg2 = split_views(out, holes, alpha, 0.5, 0.5)
+    np.testing.assert_array_equal(out2, out)
+    np.testing.assert_array_equal(holes2, holes)
+    np.testing.assert_array_equal(bg2, bg)
