@@ -7,7 +7,9 @@
 Views come from ``benchmarks/nvsm_views.py``. For every (inpainter, matcher) row, each NVSM run's
 views are completed (``raw``: the renders as rendered; ``opencv``: the stored OpenCV-inpainted
 views; any other value: a :func:`splatsearch.plugins.make_inpainter` spec, run here on the stored
-renders and hole masks, run by run as the NVSM does; a spec that cannot be built, e.g. an
+renders and hole masks, run by run as the NVSM does (an inpainter with ``completes_background``,
+the VCICN, gets the interior holes and the cropped-away background, as ``verify_object`` gives
+it; any other only the interior holes); a spec that cannot be built, e.g. an
 inpainter kind this checkout does not have, skips its row with a message) and matched against the
 goal image; an object's score is its best count over all views of all its runs, the NVSM's e_max.
 
@@ -37,7 +39,7 @@ from nvsm_views import load_views  # noqa: E402
 STORED = ("raw", "opencv")
 
 
-def _views_of(d: dict, run: int, inpainter, name: str) -> np.ndarray:
+def _views_of(d: dict, run: int, inpainter, name: str, holes_mode: str = "nvsm") -> np.ndarray:
     sel = d["view_run"] == run
     if name == "raw":
         return d["rendered"][sel]
@@ -45,6 +47,10 @@ def _views_of(d: dict, run: int, inpainter, name: str) -> np.ndarray:
         return d["opencv"][sel]
     rendered = d["rendered"][sel].astype(np.float32) / 255.0
     holes = d["holes"][sel]
+    if holes_mode == "nvsm" and getattr(inpainter, "completes_background", False):
+        # as the NVSM calls it (verify_object): a learned multi-view completion gets every hole,
+        # the background cut away by the region crop included, not only the enclosed gaps
+        holes = holes | d["background"][sel]
     extra = {"viewmats": d["viewmats"][sel], "alpha": d["alpha"][sel].astype(np.float32) / 255.0,
              "K": d["K"], "background": d["background"][sel]}
     try:
@@ -58,9 +64,12 @@ def _views_of(d: dict, run: int, inpainter, name: str) -> np.ndarray:
     return np.asarray(inpainter.inpaint(rendered, holes, **kw), np.float32)
 
 
-def object_scores(files: list[str], matcher, inpainter_name: str, inpainter=None, progress=None) -> list[dict]:
+def object_scores(files: list[str], matcher, inpainter_name: str, inpainter=None, progress=None,
+                  holes_mode: str = "nvsm") -> list[dict]:
     """One record per (episode, instance): ``episode`` (file name), ``instance``, ``is_goal``,
-    ``best`` (the best count over the views of all its runs), ``runs``, ``per_run`` (best per run)."""
+    ``best`` (the best count over the views of all its runs), ``runs``, ``per_run`` (best per run).
+    ``holes_mode``: "nvsm" (the masks the NVSM gives each inpainter) or "interior" (every plug-in
+    gets only the enclosed holes)."""
     from splatsearch.search.matching import best_view
 
     out = []
@@ -69,7 +78,7 @@ def object_scores(files: list[str], matcher, inpainter_name: str, inpainter=None
         goal = d["goal"]
         per: dict[int, dict] = {}
         for r in range(len(d["run_entry"])):
-            views = _views_of(d, r, inpainter, inpainter_name)
+            views = _views_of(d, r, inpainter, inpainter_name, holes_mode)
             bv = best_view(goal, views, matcher)
             inst = int(d["run_instance"][r])
             rec = per.setdefault(inst, {"episode": os.path.basename(f), "instance": inst,
@@ -150,6 +159,10 @@ def main(argv=None) -> int:
     ap.add_argument("--matcher", action="append", default=None,
                     help="matcher spec of splatsearch.plugins, built for renders (e.g. 'sift', 'rootsift', "
                          "'features,model=essential'); repeat for several (default: sift)")
+    ap.add_argument("--holes", choices=["nvsm", "interior"], default="nvsm",
+                    help="holes a plug-in inpainter completes: 'nvsm' as the NVSM calls it (the VCICN also gets the "
+                         "background cut away by the region crop) or 'interior' (enclosed holes only, background left "
+                         "grey); default: nvsm")
     ap.add_argument("--per-object", action="store_true", help="print the per-object table of every row")
     ap.add_argument("--out", default=None, help="JSON file to write (atomically; default: none)")
     args = ap.parse_args(argv)
@@ -176,10 +189,10 @@ def main(argv=None) -> int:
         for spec in matchers:
             matcher = make_matcher(spec, renders=True)
             t0 = time.perf_counter()
-            recs = object_scores(files, matcher, inp_name, inpainter)
+            recs = object_scores(files, matcher, inp_name, inpainter, holes_mode=args.holes)
             sep = separation(recs)
             sep["auc_ci95"] = bootstrap_auc(recs)
-            row = {"inpainter": inp_name, "matcher": spec, **sep, "seconds": round(time.perf_counter() - t0, 1),
+            row = {"inpainter": inp_name, "matcher": spec, "holes": args.holes, **sep, "seconds": round(time.perf_counter() - t0, 1),
                    "load1": round(os.getloadavg()[0], 2), "objects": recs}
             rows.append(row)
             auc = "n/a" if sep["auc"] is None else f"{sep['auc']:.3f}"

@@ -106,6 +106,22 @@ def _nearest_instance(house, label: str, centroid) -> tuple[int, float]:
     return int(objs[i].instance_id), d[i]
 
 
+def split_views(rendered: np.ndarray, holes: np.ndarray, alpha: np.ndarray, alpha_tau: float,
+                fill: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stored form of one NVSM run's views, whatever completion the agent used: (rendered
+    (V, H, W, 3) with the background flat ``fill``, interior holes (V, H, W), background
+    (V, H, W)). The NVSM hands a learned completion (``completes_background``) every hole and
+    leaves the background black; for raw and OpenCV views it splits the border-connected holes
+    off and greys them, which is done here, so that the ``raw`` and ``opencv`` rows of
+    ``nvsm_separation.py`` are the NVSM's own whichever inpainter the dumping agent ran."""
+    from splatsearch.search.inpainting import split_holes
+
+    interior, outside = split_holes(np.asarray(holes, bool))
+    out = np.array(rendered, np.float32)
+    out[outside] = fill
+    return out, interior, ((np.asarray(alpha) < alpha_tau) & ~interior) | outside
+
+
 @contextlib.contextmanager
 def recording_nvsm(runs: list, source: list):
     """Record every :meth:`Verifier.verify` that returns a result into ``runs`` (dicts with the
@@ -132,7 +148,8 @@ def recording_nvsm(runs: list, source: list):
             e = db[entry_id]
             runs.append({"entry": int(entry_id), "label": e.label, "centroid": np.array(e.centroid, float),
                          "score": score, "alpha": last_alpha[0], "source": source[0],
-                         "alpha_tau": float(self.nvsm_config.alpha_tau)})
+                         "alpha_tau": float(self.nvsm_config.alpha_tau),
+                         "crop_fill": float(self.nvsm_config.crop_fill)})
         return score
 
     verification.Verifier.verify, object_search.render_novel_views = verify, render
@@ -181,13 +198,14 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
                                                   "agent_counts_max")}
     for i, r in enumerate(runs):
         s = r["score"]
-        rendered = np.asarray(s.rendered, np.float32)
         holes = np.asarray(s.holes, bool)
         alpha = r["alpha"] if r["alpha"] is not None else np.where(holes, 0.0, 1.0)
+        rendered, holes, background = split_views(np.asarray(s.rendered, np.float32), holes, alpha, r["alpha_tau"],
+                                                  r.get("crop_fill", 0.5))
         arrays["rendered"].append(_u8(rendered))
         arrays["alpha"].append(_u8(alpha))
         arrays["holes"].append(holes)
-        arrays["background"].append((alpha < r["alpha_tau"]) & ~holes)
+        arrays["background"].append(background)
         arrays["opencv"].append(_u8(inp.inpaint(rendered, holes)))
         arrays["viewmats"].append(np.asarray(s.viewmats, np.float64))
         arrays["view_run"].append(np.full(len(rendered), i, np.int64))

@@ -212,3 +212,59 @@ def test_dumper_writes_a_loadable_deterministic_file(tmp_path):
     if da["meta"]["agent_inpainter"] == "OpenCVInpainter" and "SIFTMatcher" in da["meta"]["agent_nvsm_matcher"]:
             assert max(r["best"] for r in recs if r["is_goal"]) == max(
             c for c, g in zip(da["run_agent_counts_max"], da["run_is_goal"]) if g)
+
+
+def test_separation_gives_a_learned_completion_the_holes_the_nvsm_gives_it():
+    """A ``completes_background`` inpainter (the VCICN) gets the interior holes and the cropped-away
+    background, as verify_object gives it; any other plug-in, or ``holes_mode="interior"``, only
+    the interior holes."""
+    from nvsm_separation import _views_of
+
+    rng = np.random.default_rng(0)
+    holes = np.zeros((2, 6, 8), bool)
+    holes[:, 2:4, 3:5] = True
+    background = np.zeros_like(holes)
+    background[:, :, :1] = True
+    d = {"view_run": np.array([0, 0]), "rendered": rng.integers(0, 255, (2, 6, 8, 3), dtype=np.uint8),
+         "holes": holes, "background": background, "viewmats": np.stack([np.eye(4)] * 2),
+         "alpha": np.zeros((2, 6, 8), np.uint8), "K": np.eye(3)}
+
+    class Recorder:
+        def __init__(self, learned):
+            self.completes_background, self.got = learned, None
+
+        def inpaint(self, images, masks):
+            self.got = masks.copy()
+            return images
+
+    learned, single = Recorder(True), Recorder(False)
+    _views_of(d, 0, learned, "vcicn")
+    _views_of(d, 0, single, "opencv-like")
+    np.testing.assert_array_equal(learned.got, holes | background)
+    np.testing.assert_array_equal(single.got, holes)
+    _views_of(d, 0, learned, "vcicn", holes_mode="interior")
+    np.testing.assert_array_equal(learned.got, holes)
+
+
+def test_stored_views_do_not_depend_on_the_agents_completion():
+    """A VCICN agent's NVSM keeps the background in its holes, black; the dumper stores it split
+    off and grey, as the NVSM gives raw and OpenCV views, and leaves an OpenCV agent's views as
+    they were."""
+    from nvsm_views import split_views
+
+    alpha = np.ones((1, 8, 10), np.float32)
+    alpha[:, :, :2] = 0.0  # background at the left border
+    alpha[:, 4:6, 5:7] = 0.0  # an enclosed gap
+    full = alpha < 0.5
+    rgb = np.full((1, 8, 10, 3), 0.8, np.float32)
+    rgb[full] = 0.0
+    out, holes, bg = split_views(rgb, full, alpha, 0.5, 0.5)
+    assert holes.sum() == 4 and holes[0, 4:6, 5:7].all()
+    np.testing.assert_array_equal(bg, full & ~holes)
+    np.testing.assert_allclose(out[bg], 0.5)
+    np.testing.assert_allclose(out[holes], 0.0)
+    # an OpenCV agent's run: holes already interior, background already grey -> unchanged
+    out2, holes2, bg2 = split_views(out, holes, alpha, 0.5, 0.5)
+    np.testing.assert_array_equal(out2, out)
+    np.testing.assert_array_equal(holes2, holes)
+    np.testing.assert_array_equal(bg2, bg)

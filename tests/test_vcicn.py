@@ -130,6 +130,45 @@ def test_tiny_training_lowers_validation_loss_and_resumes(tmp_path):
     VCICNInpainter(str(tmp_path / "w.npz"))  # the exported file loads with its provenance check
 
 
+def test_warm_start_across_resolutions_and_gradient_loss(tmp_path):
+    """Weights of one resolution start a run at another: the convolutions are copied, the
+    bottleneck's position embedding is resized; another U-Net width is refused. The gradient
+    term of the loss is zero for a perfect completion and grows with a blurred one."""
+    import jax
+
+    from splatsearch.search.completion import _flatten, loss_fn
+    from splatsearch.vcicn.train import warm_start
+
+    small = VCICNConfig(width=16, height=16, features=8, heads=2, blocks=1)
+    big = VCICNConfig(width=32, height=24, features=8, heads=2, blocks=1)
+    p = str(tmp_path / "small.npz")
+    save_weights(p, init_params(small, seed=4), small)
+    src = _flatten(load_weights(p)[0])
+    started = warm_start(init_params(big, seed=5), p, big)
+    got = _flatten(started)
+    assert set(got) == set(src)
+    for k, w in got.items():
+        if k.endswith("/pos"):
+            assert w.shape == (4 * 3, src[k].shape[1])  # (32/8 x 24/8 tokens, D)
+            np.testing.assert_allclose(w.mean(0), src[k].mean(0), atol=0.02)
+        else:
+            np.testing.assert_array_equal(w, src[k])
+    out = _apply(big, started, np.zeros((1, 2, 24, 32, 4), np.float32))
+    assert out.shape == (1, 2, 24, 32, 3)
+    with pytest.raises(ValueError, match="architecture"):
+        warm_start({}, p, VCICNConfig(width=16, height=16, features=16, heads=2, blocks=1))
+
+    rng = np.random.default_rng(0)
+    gt = rng.random((1, 2, 16, 16, 3)).astype(np.float32)
+    x = np.concatenate([np.zeros_like(gt), np.ones_like(gt[..., :1])], -1)  # everything is a hole
+    hole, valid = np.ones((1, 2, 16, 16), np.float32), np.ones((1, 2), bool)
+    blur = np.broadcast_to(gt.mean((2, 3), keepdims=True), gt.shape)
+    extra = lambda pred: float(loss_fn(pred, x, hole, gt, valid, 1.0) - loss_fn(pred, x, hole, gt, valid))  # noqa: E731
+    assert extra(gt) == pytest.approx(0.0, abs=1e-6)
+    assert extra(blur) > 0.1
+    assert jax.numpy.isfinite(loss_fn(blur, x, hole, gt, valid, 0.5))
+
+
 def test_weights_round_trip_and_corruption(tmp_path):
     import jax
 

@@ -65,6 +65,12 @@ def add_parser(sub) -> None:
     t.add_argument("--val-houses", default=None,
                    help="held-apart validation house seeds ('A-B' or 'A,B'); default: seeds ending in 9")
     t.add_argument("--seed", type=int, default=0, help="initialisation and batch-order seed (default: 0)")
+    t.add_argument("--grad-loss", type=float, default=0.0,
+                   help="weight of an L1 on image gradients of the completed views vs ground truth, which pays "
+                        "for edges and texture in the fill (default: 0, off)")
+    t.add_argument("--init", default=None,
+                   help="start from these weights (.npz) instead of a random initialisation, e.g. the shipped "
+                        "64x48 weights for a --size 128x96 run (same --width; default: none)")
     t.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint in --out and start over")
     t.add_argument("--export", default=None,
                    help="also write the best weights (with provenance JSON beside them) to this .npz path")
@@ -97,7 +103,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     w, h = parse_size(args.size)
     cfg = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, width=w, height=h, features=args.width,
                       eval_every=args.eval_every, patience=args.patience, max_minutes=args.max_minutes,
-                      seed=args.seed, val_houses=args.val_houses)
+                      seed=args.seed, val_houses=args.val_houses, grad_weight=args.grad_loss, init=args.init)
     res = train(args.data, args.out, cfg, fresh=args.fresh, export=args.export,
                 command="splatsearch " + " ".join(sys.argv[1:]))
     print(json.dumps(res))

@@ -43,7 +43,9 @@ class TrainConfig:
     """Training settings (steps, objects per batch, learning rate, model size in pixels, U-Net
     width, validation period in steps, early-stopping patience in validation passes, wall-time
     budget in minutes, seed, validation houses as a ``parse_houses`` string or None for the seeds
-    ending in 9, camera-dropout probability, hole threshold on the stored 8-bit alpha)."""
+    ending in 9, camera-dropout probability, hole threshold on the stored 8-bit alpha, weight of
+    the image-gradient L1 term of :func:`~splatsearch.search.completion.loss_fn`, and a weights
+    ``.npz`` to start from instead of a random initialisation, see :func:`warm_start`)."""
 
     steps: int = 6000
     batch: int = 2
@@ -58,6 +60,8 @@ class TrainConfig:
     val_houses: str | None = None
     camera_dropout: float = 0.2
     alpha_tau: float = 0.5
+    grad_weight: float = 0.0
+    init: str | None = None
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -112,6 +116,36 @@ def load_objects(paths: list[str], width: int, height: int, alpha_tau: float = 0
         raise ValueError(f"no objects in {len(paths)} shard(s)")
     return ObjectSet(np.stack(xs), np.stack(holes), np.stack(gts), np.stack(raws), np.stack(vms),
                      np.stack(valids), np.array(seeds))
+
+
+def warm_start(params, path: str, cfg: VCICNConfig):
+    """``params`` (of architecture ``cfg``) with the weights of the file ``path``: every layer
+    must have the same shape except the bottleneck's position embedding ``pos``, which is
+    resized bilinearly to ``cfg``'s token grid. The U-Net is convolutional, so weights trained at
+    one resolution start a run at another (e.g. 64x48 -> 128x96). Raises ValueError for another
+    U-Net width, attention size or a missing layer."""
+    import jax
+
+    from splatsearch.search.completion import _flatten, _unflatten, load_weights
+
+    src, src_cfg, _meta = load_weights(path)
+    if (src_cfg.features, src_cfg.heads, src_cfg.blocks) != (cfg.features, cfg.heads, cfg.blocks):
+        raise ValueError(f"cannot start from {path!r}: its architecture {src_cfg} differs from {cfg} "
+                         "in more than the resolution")
+    flat_src, flat_dst = _flatten(src), _flatten(jax.tree_util.tree_map(np.asarray, dict(params)))
+    if set(flat_src) != set(flat_dst):
+        raise ValueError(f"cannot start from {path!r}: its layers differ from this model's")
+    out = {}
+    for k, dst in flat_dst.items():
+        w = flat_src[k]
+        if w.shape != dst.shape:
+            if k.split("/")[-1] != "pos":
+                raise ValueError(f"cannot start from {path!r}: layer {k} is {w.shape}, the model's {dst.shape}")
+            hs, ws = src_cfg.height // 8, src_cfg.width // 8
+            hd, wd = cfg.height // 8, cfg.width // 8
+            w = np.asarray(jax.image.resize(w.reshape(hs, ws, -1), (hd, wd, w.shape[-1]), "bilinear")).reshape(dst.shape)
+        out[k] = w.astype(np.float32)
+    return _unflatten(out)
 
 
 def split_paths(paths: list[str], val_houses: str | None) -> tuple[list[str], list[str]]:
@@ -190,6 +224,8 @@ def train(data_dir: str, out_dir: str, cfg: TrainConfig | None = None, *, fresh:
     sched = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, min(500, cfg.steps // 10 + 1), cfg.steps, cfg.lr * 0.05)
     opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(sched, weight_decay=1e-4))
     params = init_params(mcfg, cfg.seed)
+    if cfg.init:
+        params = jax.tree_util.tree_map(jnp.asarray, warm_start(params, cfg.init, mcfg))
     opt_state = opt.init(params)
     state = {"step": 0, "best": float("inf"), "best_step": 0, "bad_evals": 0, "log": [], "train_seconds": 0.0}
     if not fresh and os.path.exists(ckpt_path):
@@ -202,7 +238,7 @@ def train(data_dir: str, out_dir: str, cfg: TrainConfig | None = None, *, fresh:
         state = json.loads(blob["meta"])["state"]
 
     def loss_of(p, x, c, v, h, g):
-        return loss_fn(model.apply(p, x, c, v), x, h, g, v)
+        return loss_fn(model.apply(p, x, c, v), x, h, g, v, cfg.grad_weight)
 
     @jax.jit
     def step_fn(p, s, x, c, v, h, g):
