@@ -21,6 +21,7 @@ loss above ``diverge_ratio`` times the prediction's, or a correction beyond ``ma
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -179,9 +180,9 @@ class TrackerConfig:
             raise ValueError(f"downscale must be >= 1, got {self.downscale}")
         if not 0 < self.sil_thresh < 1:
             raise ValueError(f"sil_thresh must be in (0, 1), got {self.sil_thresh}")
-        if self.prior_weight < 0 or not (self.prior_rot_sigma > 0 and self.prior_trans_sigma >= 0
+        if not (self.prior_weight >= 0 and math.isfinite(self.prior_weight)) or not (self.prior_rot_sigma > 0 and self.prior_trans_sigma >= 0
                                          and self.prior_trans_floor > 0):
-            raise ValueError("prior_weight >= 0, prior_rot_sigma > 0, prior_trans_sigma >= 0 and "
+            raise ValueError("a finite prior_weight >= 0, prior_rot_sigma > 0, prior_trans_sigma >= 0 and "
                              "prior_trans_floor > 0 are required")
 
     def prior_sigma(self, odometry_step) -> tuple[float, float]:

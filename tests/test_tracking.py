@@ -170,7 +170,8 @@ def test_prior_sigma_follows_the_odometry_step():
     step = np.eye(4)
     step[:3, 3] = [0.3, 0.0, 0.4]
     assert cfg.prior_sigma(step) == pytest.approx((0.02, 0.1 * 0.5 + 0.001))
-    with pytest.raises(ValueError):
-        TrackerConfig(prior_weight=-1).validate()
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError):
+            TrackerConfig(prior_weight=bad).validate()
     with pytest.raises(ValueError):
         TrackerConfig(coarse_iters=-1).validate()

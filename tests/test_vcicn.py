@@ -130,6 +130,24 @@ def test_tiny_training_lowers_validation_loss_and_resumes(tmp_path):
     VCICNInpainter(str(tmp_path / "w.npz"))  # the exported file loads with its provenance check
 
 
+def test_one_step_training_runs_and_bad_grad_loss_is_refused(tmp_path, capsys):
+    """A 1-step run still has a learning-rate schedule (the warm-up is shorter than the run); a
+    negative or non-finite --grad-loss is refused by the parser with a clear message."""
+    from splatsearch.cli import main
+    from splatsearch.vcicn.train import TrainConfig, train
+
+    data = tmp_path / "data"
+    data.mkdir()
+    _synthetic_shards(str(data), [0, 9])
+    cfg = TrainConfig(steps=1, batch=1, width=16, height=16, features=8, eval_every=1)
+    assert train(str(data), str(tmp_path / "run"), cfg, fresh=True, progress=False)["steps"] == 1
+    for bad in ("-1", "nan"):
+        with pytest.raises(SystemExit) as e:
+            main(["vcicn", "train", "--data", str(data), "--out", str(tmp_path / "r2"), "--grad-loss", bad])
+        assert e.value.code == 2
+        assert "--grad-loss" in capsys.readouterr().err
+
+
 def test_warm_start_across_resolutions_and_gradient_loss(tmp_path):
     """Weights of one resolution start a run at another: the convolutions are copied, the
     bottleneck's position embedding is resized; another U-Net width is refused. The gradient

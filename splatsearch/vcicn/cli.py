@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 
@@ -19,6 +20,13 @@ def _positive_float(text: str) -> float:
     v = float(text)
     if not v > 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {v}")
+    return v
+
+
+def _nonnegative_float(text: str) -> float:
+    v = float(text)
+    if not (v >= 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {v}")
     return v
 
 
@@ -65,7 +73,7 @@ def add_parser(sub) -> None:
     t.add_argument("--val-houses", default=None,
                    help="held-apart validation house seeds ('A-B' or 'A,B'); default: seeds ending in 9")
     t.add_argument("--seed", type=int, default=0, help="initialisation and batch-order seed (default: 0)")
-    t.add_argument("--grad-loss", type=float, default=0.0,
+    t.add_argument("--grad-loss", type=_nonnegative_float, default=0.0,
                    help="weight of an L1 on image gradients of the completed views vs ground truth, which pays "
                         "for edges and texture in the fill (default: 0, off)")
     t.add_argument("--init", default=None,

@@ -221,7 +221,9 @@ def train(data_dir: str, out_dir: str, cfg: TrainConfig | None = None, *, fresh:
     ckpt_path, best_path = os.path.join(out_dir, "checkpoint.msgpack"), os.path.join(out_dir, "best.npz")
 
     model = build_model(mcfg)
-    sched = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, min(500, cfg.steps // 10 + 1), cfg.steps, cfg.lr * 0.05)
+    # The warm-up stays shorter than the run, so that even a 1-step run has a decay phase.
+    warmup = min(500, cfg.steps // 10 + 1, cfg.steps - 1)
+    sched = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, warmup, cfg.steps, cfg.lr * 0.05)
     opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(sched, weight_decay=1e-4))
     params = init_params(mcfg, cfg.seed)
     if cfg.init:
