@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import skfmm
 from scipy import ndimage
 
 from .grid import GridSpec, disk, known_bbox, wrap_angle
@@ -65,6 +64,8 @@ def geodesic_distance(traversable: np.ndarray, sources: np.ndarray, cell_size: f
     comp = np.isin(lab, np.unique(lab[tgt]))
     phi = np.ma.MaskedArray(np.where(tgt, -1.0, 1.0), mask=~comp)
     sub = np.full(free.shape, np.inf)
+    import skfmm  # compiled; imported here so the grid and dataset code load without it
+
     try:
         d = skfmm.distance(phi, dx=cell_size)
         # the zero level set lies half a cell outside the sources: shift so sources read 0 and a

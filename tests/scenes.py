@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 
 from splatsearch.bench import look_at  # noqa: F401  (re-exported for the tests)
+
+#: The rasterizer runs its CUDA kernels (splatsearch.rasterization picks "cuda" on a GPU backend).
+ON_CUDA = jax.default_backend() == "gpu"
 
 W, H = 70, 50  # deliberately not multiples of the 16-px tile
 

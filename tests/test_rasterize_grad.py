@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import reference
 import scenes
+from scenes import ON_CUDA
 
 import splatsearch
 
@@ -104,7 +105,10 @@ def test_grad_under_jit_and_repeated():
     g1 = gfun(*params, vm, K)
     g2 = gfun(*params, vm, K)
     for a, b in zip(g1, g2):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        if ON_CUDA:  # the CUDA backward sums with atomics: repeatable to rounding, not bitwise
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+        else:  # CPU sums in a fixed order: bitwise
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     g_ref = jax.jit(jax.grad(_loss_ref(wc, wd, wa), argnums=(0, 2, 5)))(
         *[jnp.asarray(a, jnp.float64) for a in (*params, vm, K)])
     for name, a, b in zip(["means", "scales", "viewmat"], g1, g_ref):

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scenes import ON_CUDA
 
 import splatsearch
 from splatsearch import bench
@@ -53,9 +54,11 @@ def test_tile_and_pixel_kernels_agree(which):
     (img_p, dep_p, alp_p), ni_p = _render(args, W, H, "pixel")
     assert ni_t == ni_p > 0
     assert float(alp_t.max()) > 0.5  # the scene is not empty
-    np.testing.assert_allclose(img_t, img_p, atol=2e-6, rtol=0)
-    np.testing.assert_allclose(alp_t, alp_p, atol=2e-6, rtol=0)
-    np.testing.assert_allclose(dep_t, dep_p, atol=2e-6 * max(1.0, float(dep_p.max())), rtol=0)
+    # NVRTC contracts multiply-adds differently in the two kernels: 1e-5 apart on CUDA, not 1e-6
+    tol = 3e-5 if ON_CUDA else 2e-6
+    np.testing.assert_allclose(img_t, img_p, atol=tol, rtol=0)
+    np.testing.assert_allclose(alp_t, alp_p, atol=tol, rtol=0)
+    np.testing.assert_allclose(dep_t, dep_p, atol=tol * max(1.0, float(dep_p.max())), rtol=0)
     for name, gt, gp in zip(("means", "quats", "scales", "opacities", "colors"), _grads(args, W, H, "tile"),
                             _grads(args, W, H, "pixel")):
         scale = np.abs(gp).max()
