@@ -228,6 +228,38 @@ def bwd_row(bs: wp.array(dtype=float), bl: wp.array(dtype=wp.int32), gs: wp.arra
     ...
 
 
+# The pose-only adjoint (:func:`bwd_row_pose`) needs what reaches the camera: per Gaussian the
+# depth, conic and mean2d cotangents (NG = 6 quantities: depth, conic a, b, c, mean x, y); the
+# colour and opacity sums are not kept. The colours still enter through the suffix sums buf.
+_BWD_ROW_POSE = (_BWD_ROW
+                 .replace("""        float gc[16];
+""", "")
+                 .replace("""            gc[k] = vl[k] ? Vc[k] * f_[k] : 0.0f;
+        }
+        float* A = gs.data + (t * NG + ch) * 16;
+        for (int k = 0; k < 16; ++k) A[k] = A[k] + gc[k];
+""", """        }
+""")
+                 .replace(", go[16];", ";")
+                 .replace("""        go[k] = vs ? vis * v_a : 0.0f;
+""", "")
+                 .replace("float* A = gs.data + (t * NG + C) * 16;", "float* A = gs.data + t * NG * 16;")
+                 .replace("""    for (int k = 0; k < 16; ++k) A[96 + k] = A[96 + k] + go[k];
+""", ""))
+assert "gc[" not in _BWD_ROW_POSE and "go[" not in _BWD_ROW_POSE  # every replacement above took
+
+
+@wp.func_native(_BWD_ROW_POSE)
+def bwd_row_pose(bs: wp.array(dtype=float), bl: wp.array(dtype=wp.int32), gs: wp.array(dtype=float),
+                 colf: wp.array(dtype=float), C: int, NG: int, t: int, tb: int, r: int, x0: int, nk: int,
+                 mx: float, dy: float, cn0: float, cn1: float, cn2: float, o: float, tcut: float, d: float,
+                 cb: int, j: int) -> int:
+    """:func:`bwd_row` for the pose-only backward: the same per-lane walk and suffix sums, but only
+    the depth, conic and mean2d sums of the Gaussian are added, at quantities 0..5 of gs[16 t NG:]
+    (NG = 6)."""
+    ...
+
+
 _LANE_SUMS = r"""{
     float* A = gs.data + t * NG * 16;
     for (int q = 0; q < NG; ++q) {
