@@ -13,7 +13,8 @@
 
 Prints the max abs / relative differences and exits 1 on a mismatch (relative difference above
 ``--tol`` against the full backward, 1e-3 against the reference). Includes the Warp/XLA
-compiles; about a minute on a GPU.
+compiles (estimated at about a minute on a GPU; not yet run on one: ``--composites pixel``
+leaves out the tile kernels' compiles).
 """
 
 from __future__ import annotations
@@ -34,9 +35,14 @@ def main(argv=None) -> int:
     ap.add_argument("--gaussians", type=int, default=20000, help="Gaussians of the tracking-sized scene")
     ap.add_argument("--repeats", type=int, default=10, help="timed tracking steps per backward (default 10)")
     ap.add_argument("--tol", type=float, default=1e-4, help="relative tolerance against the full backward")
+    ap.add_argument("--composites", default="pixel,tile",
+                    help="compositing kernels of the small-scene checks (default pixel,tile; pixel is the CUDA default)")
     a = ap.parse_args(argv)
     if a.gaussians < 1 or a.repeats < 1 or not a.tol > 0:
         ap.error("--gaussians and --repeats must be >= 1 and --tol > 0")
+    composites = a.composites.split(",")
+    if not composites or any(c not in ("pixel", "tile") for c in composites):
+        ap.error(f"--composites takes a comma-separated subset of pixel,tile, got {a.composites!r}")
     if a.device == "cpu":
         os.environ.setdefault("JAX_PLATFORMS", "cpu")
     import jax
@@ -67,7 +73,7 @@ def main(argv=None) -> int:
     with jax.default_device(dev):
         W, H = scenes.W, scenes.H
         vm, K = scenes.camera()
-        for composite in ("pixel", "tile"):
+        for composite in composites:
             for kind, seed in (("random", 0), ("random", 1), ("straddle", 0), ("full_frame", 0)):
                 params = scenes.scene(kind, seed)
                 rng = np.random.default_rng(seed)
