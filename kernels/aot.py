@@ -29,11 +29,11 @@ KERNEL_MODULES = (
 
 def generated_kernels(channels: Iterable[int] = (1, 3)) -> list:
     """Kernels built by factories per channel count C (each lives in a module of its own)."""
-    from .composite import composite_kernels, composite_tile_kernels
+    from .composite import composite_kernels, composite_pose_kernels, composite_tile_kernels
 
     out = []
     for C in channels:
-        out += list(composite_kernels(C)) + list(composite_tile_kernels(C))
+        out += list(composite_kernels(C)) + list(composite_tile_kernels(C)) + list(composite_pose_kernels(C))
     return out
 
 

@@ -21,7 +21,7 @@ import functools
 
 import warp as wp
 
-from .native import bwd_row, exp_neg, fwd_row, lane_sums, prefetch
+from .native import bwd_row, bwd_row_pose, exp_neg, fwd_row, lane_sums, prefetch
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 #: slack on the log-cutoff so that float rounding never skips a pixel whose alpha reaches 1/255
@@ -394,6 +394,13 @@ def splat_records_kernel(
         rec[b + REC_HEAD + ch] = colf[i * C + ch]
 
 
+@wp.func
+def splat_record(rec: wp.array(dtype=float), b: int):
+    """The record at ``rec[b:]`` (see ``REC_HEAD``): (mean2d, conic, opacity, cutoff, depth, ellipse shape)."""
+    return (wp.vec2(rec[b + 0], rec[b + 1]), wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4]), rec[b + 5], rec[b + 6],
+            rec[b + 7], wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11]))
+
+
 # Module-level cache: as for composite_kernels.
 @functools.cache
 def composite_tile_kernels(C: int):
@@ -457,12 +464,7 @@ def composite_tile_kernels(C: int):
             if j + PREFETCH_AHEAD < end:
                 prefetch(rec, ids[j + PREFETCH_AHEAD] * RS)
             b = ids[j] * RS
-            m = wp.vec2(rec[b + 0], rec[b + 1])
-            cn = wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4])
-            o = rec[b + 5]
-            tcut = rec[b + 6]
-            d = rec[b + 7]
-            sh = wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11])
+            m, cn, o, tcut, d, sh = splat_record(rec, b)
             rows = shape_rows(m, sh, ylo, yhi + 1)
             for py in range(rows[0], rows[1] + 1):
                 r = py - y0
@@ -574,12 +576,7 @@ def composite_tile_kernels(C: int):
                 prefetch(rec, ids[j - PREFETCH_AHEAD] * RS)
             g = ids[j]
             b = g * RS
-            m = wp.vec2(rec[b + 0], rec[b + 1])
-            cn = wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4])
-            o = rec[b + 5]
-            tcut = rec[b + 6]
-            d = rec[b + 7]
-            sh = wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11])
+            m, cn, o, tcut, d, sh = splat_record(rec, b)
             rows = shape_rows(m, sh, y0, y1)
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):
@@ -605,3 +602,205 @@ def composite_tile_kernels(C: int):
                 wp.atomic_add(v_opacities, g, gout[gb + C + 6])
 
     return composite_fwd_tile, composite_bwd_tile
+
+
+#: per-Gaussian quantities of the pose-only backward's accumulators: depth, conic a, b, c, mean x, y
+POSE_NG = 6
+
+
+# Module-level cache: as for composite_kernels.
+@functools.cache
+def composite_pose_kernels(C: int):
+    """Return ``(pixel, tile)`` pose-only backward kernels for C colour channels.
+
+    They are the adjoints of ``composite_fwd`` / ``composite_fwd_tile`` restricted to what the
+    camera's gradient needs: per Gaussian the cotangents of its depth, conic and mean2d (the
+    ``POSE_NG`` floats at ``acc[POSE_NG (acc_off + g):]``); colour and opacity gradients are not
+    formed. Pixels whose cotangents are all zero (outside a loss mask) are skipped. The tile
+    kernel covers the tile rows ``row0, row0 + row_step, ...`` in that order, so a host that gives
+    every group of rows its own accumulator gets sums that do not depend on the thread count.
+    """
+    vecC = wp.types.vector(length=C, dtype=wp.float32)
+    NF = bwd_scratch_fields(C)
+    RS = splat_record_size(C)
+    NGP = POSE_NG
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def composite_bwd_pose(
+        ranges: wp.array2d(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=vecC),
+        depths: wp.array(dtype=float),
+        width: int,
+        tile: int,
+        tiles_x: int,
+        pix0: int,
+        acc_off: int,
+        out_T: wp.array(dtype=float),
+        out_last: wp.array(dtype=wp.int32),
+        v_color: wp.array(dtype=vecC),
+        v_depth: wp.array(dtype=float),
+        v_alpha: wp.array(dtype=float),
+        acc: wp.array(dtype=float),
+    ):
+        pix = wp.tid() + pix0
+        px = pix % width
+        py = pix // width
+        t = (py // tile) * tiles_x + px // tile
+        start = ranges[t, 0]
+        last = out_last[pix]
+        if last < start:
+            return
+        vc = v_color[pix]
+        vd = v_depth[pix]
+        va = v_alpha[pix]
+        live = int(0)  # a pixel without cotangent adds nothing
+        if vd != 0.0 or va != 0.0:
+            live = 1
+        for ch in range(C):
+            if vc[ch] != 0.0:
+                live = 1
+        if live == 0:
+            return
+        fx = float(px) + 0.5
+        fy = float(py) + 0.5
+        T_final = out_T[pix]
+        T = T_final
+        buf = vecC()
+        bufd = float(0.0)
+        for jj in range(last - start + 1):
+            j = last - jj
+            g = ids[j]
+            m = means2d[g]
+            cn = conics[g]
+            dx = m[0] - fx
+            dy = m[1] - fy
+            sigma = gauss_sigma(cn, dx, dy)
+            if sigma < 0.0:
+                continue
+            o = opacities[g]
+            vis = exp_neg(sigma)
+            alpha = wp.min(ALPHA_MAX, o * vis)
+            if alpha < ALPHA_MIN:
+                continue
+            ra = 1.0 / (1.0 - alpha)
+            T = T * ra
+            fac = alpha * T
+            c = colors[g]
+            d = depths[g]
+            v_a = wp.dot(c * T - buf * ra, vc) + (d * T - bufd * ra) * vd + T_final * ra * va
+            buf = buf + c * fac
+            bufd = bufd + d * fac
+            gr = alpha_grads(cn, o, vis, v_a, dx, dy)
+            b = (acc_off + g) * NGP
+            wp.atomic_add(acc, b + 0, vd * fac)
+            wp.atomic_add(acc, b + 1, gr[0])
+            wp.atomic_add(acc, b + 2, gr[1])
+            wp.atomic_add(acc, b + 3, gr[2])
+            wp.atomic_add(acc, b + 4, gr[3])
+            wp.atomic_add(acc, b + 5, gr[4])
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def composite_bwd_tile_pose(
+        ranges: wp.array2d(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        rec: wp.array(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        row0: int,
+        row_step: int,
+        acc_off: int,
+        out_T: wp.array(dtype=float),
+        out_last: wp.array(dtype=wp.int32),
+        v_color: wp.array(dtype=vecC),
+        v_depth: wp.array(dtype=float),
+        v_alpha: wp.array(dtype=float),
+        bs: wp.array(dtype=float),
+        bl: wp.array(dtype=wp.int32),
+        gs: wp.array(dtype=float),
+        gout: wp.array(dtype=float),
+        row_last: wp.array(dtype=wp.int32),
+        acc: wp.array(dtype=float),
+    ):
+        k_t = wp.tid()
+        t = (row0 + row_step * (k_t // tiles_x)) * tiles_x + k_t % tiles_x
+        x0 = (t % tiles_x) * 16
+        y0 = (t // tiles_x) * 16
+        x1 = wp.min(x0 + 16, width)
+        y1 = wp.min(y0 + 16, height)
+        nk = x1 - x0
+        start = ranges[t, 0]
+        tb = t * 256
+        fb = t * NF * 256
+        for q in range(16 * NGP):
+            gs[t * NGP * 16 + q] = 0.0
+        for r in range(y1 - y0):
+            row_last[t * 16 + r] = start - 1
+        jmax = start - 1
+        for q in range(16 * (y1 - y0)):  # rows past the image are never visited
+            r = q // 16
+            k = q % 16
+            bs[fb + 2 * 256 + q] = 0.0
+            for ch in range(C):
+                bs[fb + (5 + ch) * 256 + q] = 0.0
+            bl[tb + q] = start - 1
+            bs[fb + q] = 1.0
+            bs[fb + 256 + q] = 1.0
+            bs[fb + 3 * 256 + q] = 0.0
+            bs[fb + 4 * 256 + q] = 0.0
+            for ch in range(C):
+                bs[fb + (5 + C + ch) * 256 + q] = 0.0
+            if k < nk:
+                pix = (y0 + r) * width + x0 + k
+                vc = vecC(v_color[pix])
+                vd = v_depth[pix]
+                va = v_alpha[pix]
+                live = int(0)  # a pixel without cotangent stays out of the walk
+                if vd != 0.0 or va != 0.0:
+                    live = 1
+                for ch in range(C):
+                    if vc[ch] != 0.0:
+                        live = 1
+                if live != 0:
+                    Tf = out_T[pix]
+                    bs[fb + q] = Tf
+                    bs[fb + 256 + q] = Tf
+                    bs[fb + 3 * 256 + q] = vd
+                    bs[fb + 4 * 256 + q] = va
+                    for ch in range(C):
+                        bs[fb + (5 + C + ch) * 256 + q] = vc[ch]
+                    lp = out_last[pix]
+                    bl[tb + q] = lp
+                    row_last[t * 16 + r] = wp.max(row_last[t * 16 + r], lp)
+                    jmax = wp.max(jmax, lp)
+        for jj in range(jmax - start + 1):
+            j = jmax - jj
+            if j - PREFETCH_AHEAD >= start:
+                prefetch(rec, ids[j - PREFETCH_AHEAD] * RS)
+            g = ids[j]
+            b = g * RS
+            m, cn, o, tcut, d, sh = splat_record(rec, b)
+            rows = shape_rows(m, sh, y0, y1)
+            hit = int(0)
+            for py in range(rows[0], rows[1] + 1):
+                r = py - y0
+                if j > row_last[t * 16 + r]:
+                    continue  # every pixel of the row stopped before j (or has no cotangent)
+                dy = m[1] - (float(py) + 0.5)
+                cols = shape_cols(m, sh, dy, x0, x1)
+                if cols[0] > cols[1]:
+                    continue
+                hit += bwd_row_pose(bs, bl, gs, rec, C, NGP, t, tb, r, x0, nk, m[0], dy, cn[0], cn[1], cn[2],
+                                    o, tcut, d, b + REC_HEAD, j)
+            if hit != 0:
+                lane_sums(gs, gout, t, NGP)
+                gb = t * NGP
+                ab = (acc_off + g) * NGP
+                for q in range(NGP):
+                    wp.atomic_add(acc, ab + q, gout[gb + q])
+
+    return composite_bwd_pose, composite_bwd_tile_pose

@@ -228,6 +228,92 @@ def bwd_row(bs: wp.array(dtype=float), bl: wp.array(dtype=wp.int32), gs: wp.arra
     ...
 
 
+# The pose-only adjoint (:func:`bwd_row_pose`) needs what reaches the camera: per Gaussian the
+# depth, conic and mean2d cotangents (NG = 6 quantities: depth, conic a, b, c, mean x, y); no
+# colour or opacity sums. The colour enters alpha's cotangent only through
+# sum_ch (c_ch T - buf_ch / (1 - alpha)) v_ch, and since a pixel's v_ch is fixed, the C suffix
+# sums buf_ch collapse into one, bv = sum_ch buf_ch v_ch, kept in scratch field 5 (the first buf).
+_BWD_ROW_POSE = "{" + _NO_CONTRACT + _EXP_NEG + _CONSTS + r"""
+    const int NF = 5 + 2 * C;
+    const int rb = 16 * r;
+    float* Ts = bs.data + (t * NF + 0) * 256 + rb;
+    const float* Tf = bs.data + (t * NF + 1) * 256 + rb;
+    float* Bd = bs.data + (t * NF + 2) * 256 + rb;
+    const float* Vd = bs.data + (t * NF + 3) * 256 + rb;
+    const float* Va = bs.data + (t * NF + 4) * 256 + rb;
+    float* Bv = bs.data + (t * NF + 5) * 256 + rb;
+    const int* L = bl.data + tb + rb;
+    float T_[16], f_[16], ra_[16], dx_[16], vis_[16], cv_[16];
+    float gd[16], gcn0[16], gcn1[16], gcn2[16], gm0[16], gm1[16];
+    bool vl[16];
+    int hits = 0;
+    for (int k = 0; k < 16; ++k) {
+        float dx = mx - ((float)(x0 + k) + 0.5f);
+        float sigma = 0.5f * (cn0 * dx * dx + cn2 * dy * dy) + cn1 * dx * dy;
+        float vis = spl_exp_neg(sigma);
+        float alpha = spl_alpha_max < o * vis ? spl_alpha_max : o * vis;
+        bool valid = (k < nk) & (j <= L[k]) & (sigma >= 0.0f) & (sigma <= tcut) & (alpha >= spl_alpha_min);
+        float ra = 1.0f / (1.0f - alpha);
+        float T = Ts[k] * ra;
+        vl[k] = valid;
+        dx_[k] = dx;
+        vis_[k] = vis;
+        ra_[k] = ra;
+        T_[k] = T;
+        f_[k] = alpha * T;
+        cv_[k] = 0.0f;
+        Ts[k] = valid ? T : Ts[k];
+        hits += valid ? 1 : 0;
+    }
+    if (hits == 0)
+        return 0;
+    for (int ch = 0; ch < C; ++ch) {
+        const float* Vc = bs.data + (t * NF + 5 + C + ch) * 256 + rb;
+        float cv = colf.data[cb + ch];
+        for (int k = 0; k < 16; ++k)
+            cv_[k] = cv_[k] + cv * Vc[k];
+    }
+    for (int k = 0; k < 16; ++k) {
+        float dx = dx_[k];
+        float vis = vis_[k];
+        float bd = Bd[k];
+        float bv = Bv[k];
+        float v_a = (cv_[k] * T_[k] - bv * ra_[k]) + (d * T_[k] - bd * ra_[k]) * Vd[k] + Tf[k] * ra_[k] * Va[k];
+        Bv[k] = vl[k] ? bv + cv_[k] * f_[k] : bv;
+        Bd[k] = vl[k] ? bd + d * f_[k] : bd;
+        gd[k] = vl[k] ? Vd[k] * f_[k] : 0.0f;
+        bool vs = vl[k] & !(o * vis > spl_alpha_max);
+        float v_sigma = -o * vis * v_a;
+        gcn0[k] = vs ? 0.5f * v_sigma * dx * dx : 0.0f;
+        gcn1[k] = vs ? v_sigma * dx * dy : 0.0f;
+        gcn2[k] = vs ? 0.5f * v_sigma * dy * dy : 0.0f;
+        gm0[k] = vs ? v_sigma * (cn0 * dx + cn1 * dy) : 0.0f;
+        gm1[k] = vs ? v_sigma * (cn1 * dx + cn2 * dy) : 0.0f;
+    }
+    float* A = gs.data + t * NG * 16;
+    for (int k = 0; k < 16; ++k) A[k] = A[k] + gd[k];
+    for (int k = 0; k < 16; ++k) A[16 + k] = A[16 + k] + gcn0[k];
+    for (int k = 0; k < 16; ++k) A[32 + k] = A[32 + k] + gcn1[k];
+    for (int k = 0; k < 16; ++k) A[48 + k] = A[48 + k] + gcn2[k];
+    for (int k = 0; k < 16; ++k) A[64 + k] = A[64 + k] + gm0[k];
+    for (int k = 0; k < 16; ++k) A[80 + k] = A[80 + k] + gm1[k];
+    return hits;
+}
+"""
+
+
+@wp.func_native(_BWD_ROW_POSE)
+def bwd_row_pose(bs: wp.array(dtype=float), bl: wp.array(dtype=wp.int32), gs: wp.array(dtype=float),
+                 colf: wp.array(dtype=float), C: int, NG: int, t: int, tb: int, r: int, x0: int, nk: int,
+                 mx: float, dy: float, cn0: float, cn1: float, cn2: float, o: float, tcut: float, d: float,
+                 cb: int, j: int) -> int:
+    """:func:`bwd_row` for the pose-only backward: the same per-lane walk back to front, with one
+    colour suffix sum (the colour suffix sums dotted with the pixel's colour cotangent, field 5)
+    instead of C; adds only the depth, conic and mean2d sums of the Gaussian, at quantities 0..5
+    of gs[16 t NG:] (NG = 6)."""
+    ...
+
+
 _LANE_SUMS = r"""{
     float* A = gs.data + t * NG * 16;
     for (int q = 0; q < NG; ++q) {

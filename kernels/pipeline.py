@@ -8,6 +8,8 @@ forward:  validate -> project -> depth sort -> binning -> splat records (tile ke
           scan (one host read of the total) -> scatter front to back into the tile lists;
           on CUDA: count -> scan -> write (tile | depth rank) keys -> radix sort -> tile ranges
 backward: composite adjoint -> projection adjoint -> viewmat reduction
+pose-only backward (:func:`rasterize_backward_pose`): composite adjoint of the depth, conic and
+          mean2d cotangents only -> viewmat part of the projection adjoint, reduced in fixed chunks
 
 Scratch buffers live in a per-device :class:`Workspace` and grow geometrically, so steady-state
 calls allocate nothing. The sorted intersection list (and the tile kernels' splat records) of a
@@ -45,7 +47,9 @@ from .binning import (
 from .composite import (
     TILE_LANES,
     bwd_scratch_fields,
+    POSE_NG,
     composite_kernels,
+    composite_pose_kernels,
     composite_tile_kernels,
     composite_top_id,
     splat_record_size,
@@ -53,13 +57,17 @@ from .composite import (
 )
 from .config import resolve_composite
 from .parallel import launch_split, n_threads_for, run_bands
-from .projection import project_bwd_kernel, project_fwd_kernel
+from .projection import VIEW_CHUNK, project_bwd_kernel, project_bwd_viewmat_kernel, project_fwd_kernel
 from .validate import FLAG_MESSAGES, N_FLAGS, InputValueError, validate_camera_kernel, validate_gaussians_kernel
 
 TILE_SIZE = 16
 N_SLOTS = 8
 #: accumulation slots for the viewmat gradient (spreads CUDA atomics)
 VIEWMAT_SLOTS = 64
+#: accumulator groups of the pose-only backward on the CPU: tile row r adds into group r % 8. A
+#: fixed number (not one per thread) keeps every sum's order, hence the result, independent of the
+#: thread count; 8 groups still share out the rows among up to 8 threads.
+POSE_GROUPS = 8
 
 
 @wp.kernel
@@ -540,6 +548,85 @@ def rasterize_backward(means, quats, scales, opacities, colors, viewmat, K, widt
         launch_split(project_bwd_kernel, n, lambda i0, w: pre + [i0, w * per, per],
                      [v_means, v_quats, v_scales, vm_acc], device, threads)
         wp.launch(_sum_rows_kernel, dim=16, inputs=[vm_acc, v_viewmat], device=device)
+
+
+def rasterize_backward_pose(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
+                            means2d, conics, depths, radii, out_T, out_last, handle, v_color, v_depth, v_alpha,
+                            v_viewmat, tile: int = TILE_SIZE, composite: str | None = None,
+                            threads: int | None = None) -> None:
+    """The viewmat gradient of :func:`rasterize_forward` alone, for pose tracking against a frozen map.
+
+    Arguments as for :func:`rasterize_backward`; writes only ``v_viewmat`` (16,) row-major. The
+    compositing adjoint forms just the per-Gaussian depth, conic and mean2d cotangents (no colour
+    or opacity gradients), skips pixels whose cotangents are all zero (outside a loss mask), and
+    the projection adjoint computes only the camera's part, summed per chunk of ``VIEW_CHUNK``
+    Gaussians and then over the chunks in order. On the CPU the result is bitwise the same for
+    every thread count (see ``POSE_GROUPS``); it equals the full backward's viewmat gradient up
+    to float summation order.
+    """
+    device = means.device
+    st = _device_state(device)
+    n = means.shape[0]
+    C = colors.dtype._length_ if hasattr(colors.dtype, "_length_") else 1
+    with st.ws.lock:
+        v_viewmat.zero_()
+        if n == 0:
+            return
+        ranges, ids, _ = lookup_binning(device, handle, means2d, conics, opacities, depths, radii,
+                                        width, height, tile, threads)
+        tiles_x, tiles_y = grid_dims(width, height, tile)
+        n_threads = n_threads_for(device, threads)
+        is_cpu = wp.get_device(device).is_cpu
+        G = min(POSE_GROUPS, tiles_y) if is_cpu else 1  # CUDA: one group, atomics
+        ws = st.ws
+        acc = ws.get("pose_acc", G * n * POSE_NG, wp.float32, zero=True)
+        pix_bwd, tile_bwd = composite_pose_kernels(C)
+        if resolve_composite(composite, device) == "tile":
+            if tile != TILE_LANES:
+                raise ValueError(f"the tile compositing kernels need tile={TILE_LANES}, got {tile}")
+            n_tiles = tiles_x * tiles_y
+            bs = ws.get("tile_bwd", n_tiles * 256 * bwd_scratch_fields(C), wp.float32)
+            bl = ws.get("tile_bwd_L", n_tiles * 256, wp.int32)
+            gs = ws.get("tile_gsum", n_tiles * 16 * POSE_NG, wp.float32)
+            gout = ws.get("tile_gout", n_tiles * POSE_NG, wp.float32)
+            row_last = ws.get("row_last", n_tiles * 16, wp.int32)
+            slot = _live_slot(device, handle)
+            rec = slot.rec if slot is not None and slot.rec is not None else \
+                splat_records(ws, means2d, conics, opacities, depths, colors, radii, threads)
+
+            def launch(_w, grp, _grp1):
+                n_rows = len(range(grp, tiles_y, G))
+                wp.launch(tile_bwd, dim=n_rows * tiles_x,
+                          inputs=[ranges, ids, rec, width, height, tiles_x, grp, G, grp * n, out_T, out_last,
+                                  v_color, v_depth, v_alpha, bs, bl, gs, gout, row_last],
+                          outputs=[acc], device=device)
+
+            kernel = tile_bwd
+        else:
+            def launch(_w, grp, _grp1):
+                spans = [(0, width * height)] if G == 1 else \
+                    [(ty * tile * width, min(height, (ty + 1) * tile) * width) for ty in range(grp, tiles_y, G)]
+                for p0, p1 in spans:
+                    wp.launch(pix_bwd, dim=p1 - p0,
+                              inputs=[ranges, ids, means2d, conics, opacities, colors, depths, width, tile, tiles_x,
+                                      p0, grp * n, out_T, out_last, v_color, v_depth, v_alpha],
+                              outputs=[acc], device=device)
+
+            kernel = pix_bwd
+        run_bands([(g, g + 1) for g in range(G)], n_threads, launch, kernel, device)
+
+        n_chunks = (n + VIEW_CHUNK - 1) // VIEW_CHUNK
+        rows = ws.get2d("pose_vm_rows", n_chunks, 16, wp.float32)
+        workers = max(1, min(n_threads, n_chunks))
+        bands = [(n_chunks * w // workers, n_chunks * (w + 1) // workers) for w in range(workers)]
+
+        def reduce(_w, c0, c1):
+            wp.launch(project_bwd_viewmat_kernel, dim=c1 - c0,
+                      inputs=[means, quats, scales, viewmat, K, width, height, conics, radii, acc, G, c0],
+                      outputs=[rows], device=device)
+
+        run_bands([bd for bd in bands if bd[1] > bd[0]], workers, reduce, project_bwd_viewmat_kernel, device)
+        wp.launch(_sum_rows_kernel, dim=16, inputs=[rows, v_viewmat], device=device)
 
 
 def top_ids(means, quats, scales, opacities, viewmat, K, width: int, height: int, near: float, far: float,

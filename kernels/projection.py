@@ -78,6 +78,50 @@ def clip_limits(width: int, height: int, fx: float, fy: float, cx: float, cy: fl
     )
 
 
+@wp.func
+def camera_adjoint(p: wp.vec3, Sc: wp.mat33, fx: float, fy: float, lim: wp.vec4, cn: wp.vec3, vm2: wp.vec2,
+                   vc: wp.vec3, v_depth: float):
+    """Adjoint of the projection from the camera-space point p and covariance Sc to (mean2d, conic,
+    depth), for their cotangents (vm2, vc, v_depth): returns (v_p, v_Sc)."""
+    z = p[2]
+    rz = 1.0 / z
+    rz2 = rz * rz
+    u = p[0] * rz
+    v = p[1] * rz
+    tx = z * wp.min(lim[0], wp.max(-lim[1], u))
+    ty = z * wp.min(lim[2], wp.max(-lim[3], v))
+    J = mat23(fx * rz, 0.0, -fx * tx * rz2, 0.0, fy * rz, -fy * ty * rz2)
+
+    # conic = inverse(cov2d): v_cov = -conic * v_conic_sym * conic
+    Cm = wp.mat22(cn[0], cn[1], cn[1], cn[2])
+    Vc = wp.mat22(vc[0], 0.5 * vc[1], 0.5 * vc[1], vc[2])
+    v_cov = -(Cm * Vc * Cm)
+
+    # cov2d = J Sc J^T (+ eps2d I, which has no parameters)
+    v_Sc = wp.transpose(J) * v_cov * J
+    v_J = 2.0 * (v_cov * J * Sc)
+
+    # camera-space point: mean2d, depth and the Jacobian's dependence on p
+    v_p = wp.vec3(fx * rz * vm2[0], fy * rz * vm2[1],
+                  -(fx * p[0] * vm2[0] + fy * p[1] * vm2[1]) * rz2 + v_depth)
+    x_in = 1.0
+    if u > lim[0] or u < -lim[1]:
+        x_in = 0.0
+    y_in = 1.0
+    if v > lim[2] or v < -lim[3]:
+        y_in = 0.0
+    # J02 = -fx tx / z^2 with tx = x (inside) or z * const (clipped)
+    v_p = v_p + wp.vec3(
+        -fx * rz2 * v_J[0, 2] * x_in,
+        -fy * rz2 * v_J[1, 2] * y_in,
+        -fx * rz2 * v_J[0, 0] - fy * rz2 * v_J[1, 1]
+        + fx * tx * rz2 * rz * (1.0 + x_in) * v_J[0, 2]
+        + fy * ty * rz2 * rz * (1.0 + y_in) * v_J[1, 2],
+    )
+
+    return v_p, v_Sc
+
+
 @wp.kernel
 def project_fwd_kernel(
     means: wp.array(dtype=wp.vec3),
@@ -194,7 +238,6 @@ def project_bwd_kernel(
     t = wp.vec3(vm[0, 3], vm[1, 3], vm[2, 3])
     m = means[i]
     p = R * m + t
-    z = p[2]
     K = intrin[0]
     fx = K[0, 0]
     fy = K[1, 1]
@@ -211,43 +254,7 @@ def project_bwd_kernel(
     Sc = R * Sigma * wp.transpose(R)
 
     lim = clip_limits(width, height, fx, fy, cx, cy)
-    rz = 1.0 / z
-    rz2 = rz * rz
-    u = p[0] * rz
-    v = p[1] * rz
-    tx = z * wp.min(lim[0], wp.max(-lim[1], u))
-    ty = z * wp.min(lim[2], wp.max(-lim[3], v))
-    J = mat23(fx * rz, 0.0, -fx * tx * rz2, 0.0, fy * rz, -fy * ty * rz2)
-
-    # conic = inverse(cov2d): v_cov = -conic * v_conic_sym * conic
-    cn = conics[i]
-    Cm = wp.mat22(cn[0], cn[1], cn[1], cn[2])
-    vc = v_conics[i]
-    Vc = wp.mat22(vc[0], 0.5 * vc[1], 0.5 * vc[1], vc[2])
-    v_cov = -(Cm * Vc * Cm)
-
-    # cov2d = J Sc J^T (+ eps2d I, which has no parameters)
-    v_Sc = wp.transpose(J) * v_cov * J
-    v_J = 2.0 * (v_cov * J * Sc)
-
-    # camera-space point: mean2d, depth and the Jacobian's dependence on p
-    vm2 = v_means2d[i]
-    v_p = wp.vec3(fx * rz * vm2[0], fy * rz * vm2[1],
-                  -(fx * p[0] * vm2[0] + fy * p[1] * vm2[1]) * rz2 + v_depths[i])
-    x_in = 1.0
-    if u > lim[0] or u < -lim[1]:
-        x_in = 0.0
-    y_in = 1.0
-    if v > lim[2] or v < -lim[3]:
-        y_in = 0.0
-    # J02 = -fx tx / z^2 with tx = x (inside) or z * const (clipped)
-    v_p = v_p + wp.vec3(
-        -fx * rz2 * v_J[0, 2] * x_in,
-        -fy * rz2 * v_J[1, 2] * y_in,
-        -fx * rz2 * v_J[0, 0] - fy * rz2 * v_J[1, 1]
-        + fx * tx * rz2 * rz * (1.0 + x_in) * v_J[0, 2]
-        + fy * ty * rz2 * rz * (1.0 + y_in) * v_J[1, 2],
-    )
+    v_p, v_Sc = camera_adjoint(p, Sc, fx, fy, lim, conics[i], v_means2d[i], v_conics[i], v_depths[i])
 
     # Sc = R Sigma R^T
     v_Sigma = wp.transpose(R) * v_Sc * R
@@ -270,3 +277,69 @@ def project_bwd_kernel(
         for b in range(3):
             wp.atomic_add(v_viewmat, slot, a * 4 + b, v_R[a, b])
         wp.atomic_add(v_viewmat, slot, a * 4 + 3, v_p[a])
+
+
+#: Gaussians per row of the pose-only backward's viewmat reduction
+VIEW_CHUNK = 256
+
+
+@wp.kernel
+def project_bwd_viewmat_kernel(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    viewmat: wp.array(dtype=wp.mat44),
+    intrin: wp.array(dtype=wp.mat33),
+    width: int,
+    height: int,
+    conics: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=wp.vec2i),
+    acc: wp.array(dtype=float),
+    n_groups: int,
+    c0: int,
+    out: wp.array2d(dtype=float),
+):
+    """The viewmat part of ``project_bwd_kernel``, one thread per chunk of ``VIEW_CHUNK`` Gaussians.
+
+    Gaussian i's cotangents (depth, conic a, b, c, mean2d x, y) are the sum over ``n_groups``
+    accumulator groups of ``acc[6 (k n + i):]`` (k = 0, 1, ..., in that order); chunk c writes its
+    16-float sum (row-major 4x4, last row 0) to ``out[c]``. Every sum runs in a fixed order, so the
+    result does not depend on how the chunks are split over threads.
+    """
+    c = wp.tid() + c0
+    n = means.shape[0]
+    vm = viewmat[0]
+    R = camera_rotation(vm)
+    t = wp.vec3(vm[0, 3], vm[1, 3], vm[2, 3])
+    K = intrin[0]
+    fx = K[0, 0]
+    fy = K[1, 1]
+    lim = clip_limits(width, height, fx, fy, K[0, 2], K[1, 2])
+    sR = wp.mat33()
+    sp = wp.vec3()
+    for i in range(c * VIEW_CHUNK, wp.min(n, (c + 1) * VIEW_CHUNK)):
+        r = radii[i]
+        if r[0] <= 0 and r[1] <= 0:
+            continue
+        g = wp.vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, dtype=float)
+        for k in range(n_groups):
+            b = (k * n + i) * 6
+            for q in range(6):
+                g[q] = g[q] + acc[b + q]
+        m = means[i]
+        p = R * m + t
+        q4 = quats[i]
+        Rq = quat_to_rotmat(q4 / wp.length(q4))
+        M = Rq * wp.diag(scales[i])
+        Sigma = M * wp.transpose(M)
+        Sc = R * Sigma * wp.transpose(R)
+        v_p, v_Sc = camera_adjoint(p, Sc, fx, fy, lim, conics[i], wp.vec2(g[4], g[5]), wp.vec3(g[1], g[2], g[3]),
+                                   g[0])
+        sR = sR + 2.0 * (v_Sc * R * Sigma) + wp.outer(v_p, m)
+        sp = sp + v_p
+    for a in range(3):
+        for b2 in range(3):
+            out[c, a * 4 + b2] = sR[a, b2]
+        out[c, a * 4 + 3] = sp[a]
+    for b2 in range(4):
+        out[c, 12 + b2] = 0.0

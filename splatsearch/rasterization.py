@@ -19,6 +19,8 @@ from splatsearch.kernels import pipeline as _pl
 
 wp.config.quiet = True
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+#: what :func:`rasterize`'s backward differentiates: everything, or the camera pose alone
+DIFFERENTIABLE = ("all", "viewmat")
 #: compositing kernels; passed to the Warp callbacks as their index + 1 (0: the default)
 _COMPOSITES = ("tile", "pixel")
 
@@ -149,9 +151,40 @@ def _callables(C: int):
                                v_scales, v_opacities, v_colors, v_viewmat,
                                composite=_composite_arg(composite), threads=threads or None)
 
+    def bwd_pose(
+        means: wp.array(dtype=wp.vec3),
+        quats: wp.array(dtype=wp.vec4),
+        scales: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=wp.float32),
+        colors: wp.array(dtype=vecC),
+        viewmat: wp.array(dtype=wp.mat44),
+        K: wp.array(dtype=wp.mat33),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        depths: wp.array(dtype=wp.float32),
+        radii: wp.array(dtype=wp.vec2i),
+        out_T: wp.array(dtype=wp.float32),
+        out_last: wp.array(dtype=wp.int32),
+        handle: wp.array(dtype=wp.int32),
+        v_color: wp.array(dtype=vecC),
+        v_depth: wp.array(dtype=wp.float32),
+        v_alpha: wp.array(dtype=wp.float32),
+        width: int,
+        height: int,
+        composite: int,
+        threads: int,
+        v_viewmat: wp.array(dtype=wp.float32),
+    ):
+        h = handle.numpy()
+        _pl.rasterize_backward_pose(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                    means2d, conics, depths, radii, out_T, out_last, (int(h[0]), int(h[1])),
+                                    v_color, v_depth, v_alpha, v_viewmat, composite=_composite_arg(composite),
+                                    threads=threads or None)
+
     mode = wp.JaxCallableGraphMode.NONE  # the forward reads the intersection count on the host
     return (wp.jax_callable(fwd, num_outputs=10, graph_mode=mode, vmap_method="sequential"),
-            wp.jax_callable(bwd, num_outputs=6, graph_mode=mode, vmap_method="sequential"))
+            wp.jax_callable(bwd, num_outputs=6, graph_mode=mode, vmap_method="sequential"),
+            wp.jax_callable(bwd_pose, num_outputs=1, graph_mode=mode, vmap_method="sequential"))
 
 
 # --------------------------------------------------------------------------------------------
@@ -167,12 +200,13 @@ class _Cfg(NamedTuple):
     validate: bool
     composite: int = 0  # 0: default, else index into _COMPOSITES + 1
     threads: int = 0  # 0: default
+    pose_only: bool = False  # differentiable="viewmat": the backward forms the viewmat gradient only
 
 
 def _fwd_call(cfg: _Cfg, means, quats, scales, opacities, colors, viewmat, K):
     N, C = colors.shape
     HW = cfg.width * cfg.height
-    fwd, _ = _callables(C)
+    fwd = _callables(C)[0]
     outs = fwd(means, quats, scales, opacities, colors, viewmat[None], K[None],
                cfg.width, cfg.height, cfg.near, cfg.far, cfg.eps2d, int(cfg.validate), cfg.composite, cfg.threads,
                output_dims={"out_color": (HW,), "out_depth": (HW,), "out_T": (HW,), "out_last": (HW,),
@@ -208,12 +242,22 @@ def _core_bwd(cfg: _Cfg, res, cts):
     v_color, v_depth, v_alpha = cts[0], cts[1], cts[2]
     N, C = colors.shape
     HW = cfg.width * cfg.height
-    _, bwd = _callables(C)
+    v_color = v_color.reshape(HW, C).astype(jnp.float32)
+    v_depth = v_depth.reshape(HW).astype(jnp.float32)
+    v_alpha = v_alpha.reshape(HW).astype(jnp.float32)
+    if cfg.pose_only:
+        v_vm = _callables(C)[2](
+            means, quats, scales, opacities, colors, viewmat[None], K[None], means2d, conics, depths, radii, T, last,
+            handle, v_color, v_depth, v_alpha, cfg.width, cfg.height, cfg.composite, cfg.threads,
+            output_dims={"v_viewmat": (16,)})
+        v_vm = v_vm[0] if isinstance(v_vm, (list, tuple)) else v_vm
+        # the Gaussians are constants here (unused zeros vanish under jit)
+        return (jnp.zeros_like(means), jnp.zeros_like(quats), jnp.zeros_like(scales), jnp.zeros_like(opacities),
+                jnp.zeros_like(colors), v_vm.reshape(4, 4), jnp.zeros_like(K))
+    bwd = _callables(C)[1]
     v_means, v_quats, v_scales, v_opac, v_colors, v_vm = bwd(
         means, quats, scales, opacities, colors, viewmat[None], K[None], means2d, conics, depths,
-        radii, T, last, handle, v_color.reshape(HW, C).astype(jnp.float32),
-        v_depth.reshape(HW).astype(jnp.float32), v_alpha.reshape(HW).astype(jnp.float32),
-        cfg.width, cfg.height, cfg.eps2d, cfg.composite, cfg.threads,
+        radii, T, last, handle, v_color, v_depth, v_alpha, cfg.width, cfg.height, cfg.eps2d, cfg.composite, cfg.threads,
         output_dims={"v_means": (N,), "v_quats": (N,), "v_scales": (N,), "v_opacities": (N,),
                      "v_colors": (N,), "v_viewmat": (16,)})
     return (v_means, v_quats, v_scales, v_opac, v_colors, v_vm.reshape(4, 4), jnp.zeros_like(K))
@@ -305,6 +349,7 @@ def rasterize(
     validate: bool = True,
     composite: str | None = None,
     threads: int | None = None,
+    differentiable: str = "all",
 ) -> RasterOutput:
     """Render 3-D Gaussians with the tile rasterizer (gsplat 1.5 / Inria 3DGS rules).
 
@@ -332,6 +377,12 @@ def rasterize(
             may set (see :mod:`splatsearch.kernels.config`).
         threads: CPU worker threads (>= 1); None: the usable cores, or ``SPLATSEARCH_THREADS``.
             Ignored on CUDA.
+        differentiable: "all" (gradients reach every input) or "viewmat": pose tracking against
+            a frozen map. The Gaussians' parameters are then constants (zero gradient, like
+            ``jax.lax.stop_gradient``) and the backward forms only the viewmat gradient: no
+            per-Gaussian gradient arrays, pixels whose cotangents are all zero are skipped, and
+            on the CPU the result is bitwise the same for any ``threads``. It equals the "all"
+            backward's viewmat gradient up to float summation order.
 
     Returns:
         :class:`RasterOutput` ``(image, depth, alpha, meta)``; see its docstring for shapes.
@@ -342,7 +393,8 @@ def rasterize(
             ``jax.jit`` value errors surface as a ``JaxRuntimeError`` carrying the same message.
 
     Gradients (``jax.grad``) flow from image, depth and alpha into means, quats, scales,
-    opacities, colors, backgrounds and viewmat; K receives zero gradient.
+    opacities, colors, backgrounds and viewmat (only viewmat and backgrounds with
+    ``differentiable="viewmat"``); K receives zero gradient.
     """
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
@@ -355,6 +407,8 @@ def rasterize(
     if eps2d < 0:
         raise ValueError(f"eps2d must be non-negative, got {eps2d}")
     composite_code, threads_code = _check_run_options(composite, threads)
+    if differentiable not in DIFFERENTIABLE:
+        raise ValueError(f"differentiable must be one of {DIFFERENTIABLE}, got {differentiable!r}")
 
     means = _as_float("means", means, "(N, 3)", ndim=2)
     if means.shape[1] != 3:
@@ -413,7 +467,7 @@ def rasterize(
     _check_camera(viewmats, Ks)
 
     cfg = _Cfg(width, height, float(near_plane), float(far_plane), float(eps2d), bool(validate), composite_code,
-               threads_code)
+               threads_code, differentiable == "viewmat")
     image, depth, alpha, radii, n_isect = _render_cameras(cfg, render_mode, batched, means, quats, scales, opacities,
                                                           colors, viewmats, Ks, backgrounds)
     meta = {"radii": radii, "n_isect": n_isect, "width": width, "height": height, "tile_size": _pl.TILE_SIZE}

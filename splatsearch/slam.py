@@ -212,6 +212,8 @@ class TrackResult:
 
 
 _TRACK_FNS: dict = {}
+#: the tracker's rasterizer backward: the map is frozen, so only the pose gradient is formed
+_TRACK_DIFF = "viewmat"
 
 
 def _track_fn(levels: tuple, cfg: TrackerConfig):
@@ -231,7 +233,8 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         Kj = jnp.asarray(np.frombuffer(Kb, np.float32).reshape(3, 3))
 
         def render(xi, margs, vm_ref):
-            return rasterize(*margs, perturb_viewmat(vm_ref, xi), Kj, W, H, render_mode="RGB+D", validate=False)
+            return rasterize(*margs, perturb_viewmat(vm_ref, xi), Kj, W, H, render_mode="RGB+D", validate=False,
+                             differentiable=_TRACK_DIFF)
 
         def mask_at(xi, margs, depth, vm_ref):
             """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier."""
