@@ -106,7 +106,7 @@ def test_grad_under_jit_and_repeated():
     g2 = gfun(*params, vm, K)
     for a, b in zip(g1, g2):
         if ON_CUDA:  # the CUDA backward sums with atomics: repeatable to rounding, not bitwise
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
         else:  # CPU sums in a fixed order: bitwise
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     g_ref = jax.jit(jax.grad(_loss_ref(wc, wd, wa), argnums=(0, 2, 5)))(
