@@ -28,6 +28,7 @@ from splatsearch.camera import pixels_to_world
 from splatsearch.gaussians import GaussianMap, append, compact, empty_map, render_args
 from splatsearch.kernels.densify import densify
 from splatsearch.losses import l1, mapping_loss, psnr, ssim, ssim_stats
+from splatsearch.precision import full_precision
 from splatsearch.rasterization import rasterize
 from splatsearch.rgbd import clean_depth, fill_depth_holes
 
@@ -150,7 +151,7 @@ class Frame:
         return float(np.exp(self.fp[6])), float(self.fp[7])
 
 
-_ssim_stats_jit = jax.jit(ssim_stats)
+_ssim_stats_jit = jax.jit(full_precision(ssim_stats))
 
 
 def render_map(gmap: GaussianMap, viewmat, K, width: int, height: int):
@@ -440,6 +441,7 @@ def _optimiser_and_step(cfg: MapperConfig, K: np.ndarray, W: int, H: int):
                             rgb_stats=stats)
 
     @jax.jit
+    @full_precision
     def step(params, active, opt_state, rgb, stats, depth, viewmat):
         loss, grads = jax.value_and_grad(loss_fn)(params, active, rgb, stats, depth, viewmat)
         updates, opt_state = tx.update(grads, opt_state, params)
@@ -455,6 +457,7 @@ def _optimiser_and_step(cfg: MapperConfig, K: np.ndarray, W: int, H: int):
                             rgb_stats=stats)
 
     @jax.jit
+    @full_precision
     def step_fp(params, active, opt_state, fp, rgb, stats, depth, viewmat):
         """The step of ``step`` that also returns the gradient of the frame's parameters fp (8,)."""
         loss, (grads, g_fp) = jax.value_and_grad(loss_fp, argnums=(0, 1))(params, fp, active, rgb, stats, depth,
