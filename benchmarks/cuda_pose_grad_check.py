@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     try:
         dev = jax.devices("gpu" if a.device == "cuda" else "cpu")[0]
     except RuntimeError as e:
-        print(f"no {a.device} device: {e}", file=sys.stderr)
+        print(f"cuda_pose_grad_check: no {a.device} device here ({e})", file=sys.stderr)
         return 2
     print(f"device: {dev}")
     ok = True

@@ -394,13 +394,6 @@ def splat_records_kernel(
         rec[b + REC_HEAD + ch] = colf[i * C + ch]
 
 
-@wp.func
-def splat_record(rec: wp.array(dtype=float), b: int):
-    """The record at ``rec[b:]`` (see ``REC_HEAD``): (mean2d, conic, opacity, cutoff, depth, ellipse shape)."""
-    return (wp.vec2(rec[b + 0], rec[b + 1]), wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4]), rec[b + 5], rec[b + 6],
-            rec[b + 7], wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11]))
-
-
 # Module-level cache: as for composite_kernels.
 @functools.cache
 def composite_tile_kernels(C: int):
@@ -464,7 +457,12 @@ def composite_tile_kernels(C: int):
             if j + PREFETCH_AHEAD < end:
                 prefetch(rec, ids[j + PREFETCH_AHEAD] * RS)
             b = ids[j] * RS
-            m, cn, o, tcut, d, sh = splat_record(rec, b)
+            m = wp.vec2(rec[b + 0], rec[b + 1])
+            cn = wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4])
+            o = rec[b + 5]
+            tcut = rec[b + 6]
+            d = rec[b + 7]
+            sh = wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11])
             rows = shape_rows(m, sh, ylo, yhi + 1)
             for py in range(rows[0], rows[1] + 1):
                 r = py - y0
@@ -576,7 +574,12 @@ def composite_tile_kernels(C: int):
                 prefetch(rec, ids[j - PREFETCH_AHEAD] * RS)
             g = ids[j]
             b = g * RS
-            m, cn, o, tcut, d, sh = splat_record(rec, b)
+            m = wp.vec2(rec[b + 0], rec[b + 1])
+            cn = wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4])
+            o = rec[b + 5]
+            tcut = rec[b + 6]
+            d = rec[b + 7]
+            sh = wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11])
             rows = shape_rows(m, sh, y0, y1)
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):
@@ -783,7 +786,12 @@ def composite_pose_kernels(C: int):
                 prefetch(rec, ids[j - PREFETCH_AHEAD] * RS)
             g = ids[j]
             b = g * RS
-            m, cn, o, tcut, d, sh = splat_record(rec, b)
+            m = wp.vec2(rec[b + 0], rec[b + 1])
+            cn = wp.vec3(rec[b + 2], rec[b + 3], rec[b + 4])
+            o = rec[b + 5]
+            tcut = rec[b + 6]
+            d = rec[b + 7]
+            sh = wp.vec4(rec[b + 8], rec[b + 9], rec[b + 10], rec[b + 11])
             rows = shape_rows(m, sh, y0, y1)
             hit = int(0)
             for py in range(rows[0], rows[1] + 1):

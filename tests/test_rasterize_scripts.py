@@ -46,3 +46,24 @@ def test_critical_path_help():
     out = _run("critical_path.py", "--help")
     assert out.returncode == 0
     assert "--scenes" in out.stdout and "critical path" in out.stdout
+
+
+def test_cuda_pose_grad_check_help_and_without_gpu():
+    out = _run("cuda_pose_grad_check.py", "--help")
+    assert out.returncode == 0 and "--device" in out.stdout
+    import jax
+
+    if any(d.platform == "gpu" for d in jax.devices()):
+        pytest.skip("a GPU is present: the script would run the check")
+    out = _run("cuda_pose_grad_check.py", "--device", "cuda")
+    assert out.returncode == 2
+    assert "cuda_pose_grad_check: no cuda device" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_track_speed_and_profile_refuse_bad_arguments():
+    out = _run("track_speed.py", "--data", "kitti")
+    assert out.returncode == 2 and "--data" in out.stderr
+    out = _run("track_speed.py", "--seed", "1000")
+    assert out.returncode == 2 and "evaluation houses" in out.stderr
+    out = _run("track_profile.py", "--size", "100x10")
+    assert out.returncode == 2 and "--size" in out.stderr
