@@ -13,8 +13,8 @@
 
 Prints the max abs / relative differences and exits 1 on a mismatch (relative difference above
 ``--tol`` against the full backward, 1e-3 against the reference). Includes the Warp/XLA
-compiles (estimated at about a minute on a GPU; not yet run on one: ``--composites pixel``
-leaves out the tile kernels' compiles).
+compiles: about 27 s on an H200 with both kernels (``--composites pixel`` leaves out the tile
+kernels' compiles).
 """
 
 from __future__ import annotations
