@@ -167,7 +167,6 @@ class TrackerConfig:
     prior_trans_sigma: float = 0.05
     prior_trans_floor: float = 1e-3
     prior_lateral_sigma: float | None = None
-    mask_erode: int = 0
 
     def validate(self) -> None:
         if self.iters < 1:
@@ -189,8 +188,6 @@ class TrackerConfig:
         if self.prior_lateral_sigma is not None and not (self.prior_lateral_sigma >= 0
                                                          and math.isfinite(self.prior_lateral_sigma)):
             raise ValueError(f"prior_lateral_sigma must be None or a finite value >= 0, got {self.prior_lateral_sigma}")
-        if self.mask_erode < 0:
-            raise ValueError(f"mask_erode must be >= 0, got {self.mask_erode}")
 
     def prior_sigma(self, odometry_step) -> tuple[float, float]:
         """(sigma_rot rad, sigma_trans m) of the odometry prior for an odometry motion
@@ -244,7 +241,7 @@ _TRACK_FNS: dict = {}
 def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
-           cfg.tol, cfg.patience, cfg.mask_erode)
+           cfg.tol, cfg.patience)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar
@@ -253,7 +250,6 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     adam = optax.adam(1.0)  # unit steps, scaled per component by ``lrs``
     sil, w_c, ok_k = cfg.sil_thresh, cfg.w_color, cfg.outlier_k
     tol, patience = cfg.tol, cfg.patience
-    erode = cfg.mask_erode
 
     def make_level(Kb, W, H):
         Kj = jnp.asarray(np.frombuffer(Kb, np.float32).reshape(3, 3))
@@ -265,11 +261,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier."""
             out = render(xi, margs, vm_ref)
             d_err = jnp.abs(out.depth[..., 0] - depth)
-            cov = out.alpha[..., 0] > sil
-            if erode > 0:  # pixels near the map's silhouette edge (outside the image counts as covered)
-                cov = jax.lax.reduce_window(cov.astype(jnp.float32), 1.0, jax.lax.min, (2 * erode + 1,) * 2, (1, 1),
-                                            "SAME") > 0.5
-            m = cov & (depth > 0)
+            m = (out.alpha[..., 0] > sil) & (depth > 0)
             if ok_k > 0:
                 med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
                 m = m & (d_err <= ok_k * jnp.where(jnp.isfinite(med), med, jnp.inf))

@@ -78,8 +78,6 @@ def test_prior_precision_is_tighter_across_the_motion():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError):
             TrackerConfig(prior_lateral_sigma=bad).validate()
-    with pytest.raises(ValueError):
-        TrackerConfig(mask_erode=-1).validate()
 
 
 def test_bad_prior_precision_is_rejected(tracking_map):
