@@ -139,7 +139,10 @@ class TrackerConfig:
     sigma_rot = ``prior_rot_sigma`` rad and sigma_trans = ``prior_trans_sigma`` x the distance
     the odometry moved + ``prior_trans_floor`` m (the odometry's noise per frame). Odometry and
     the image then both count: on flat, weakly textured walls the image alone barely fixes a
-    sideways shift, and a shift there trades against a turn.
+    sideways shift, and a shift there trades against a turn. ``prior_lateral_sigma`` (a fraction
+    of the distance, None: off) gives the translation across the odometry's direction of motion
+    its own, tighter sigma (a wheeled robot's odometry errs along its path, hardly sideways); see
+    :meth:`prior_precision`.
     """
 
     iters: int = 40
