@@ -90,6 +90,11 @@ def main(argv=None) -> int:
                    help=f"early-stop patience of a tracking stage (0: off; default {d.patience})")
     p.add_argument("--prior-weight", type=float, default=d.prior_weight,
                    help=f"odometry prior weight (default {d.prior_weight:g})")
+    p.add_argument("--prior-rot-sigma", type=float, default=d.prior_rot_sigma,
+                   help=f"odometry prior's rotation sigma in rad per frame (default {d.prior_rot_sigma:g})")
+    p.add_argument("--prior-lateral", type=float, default=d.prior_lateral_sigma,
+                   help="odometry prior's sigma across the direction moved, as a fraction of the distance "
+                        "(default: none, the same as along it)")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
     p.add_argument("--rgbd-odometry", action="store_true", help="start tracking from OpenCV RGB-D odometry")
     p.add_argument("--planar", action="store_true", help="track planar motions only (ground robot)")
@@ -105,7 +110,12 @@ def main(argv=None) -> int:
         p.error("seeds >= 1000 are evaluation houses: never tuned on")
     tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry,
                          planar=a.planar, coarse_iters=a.track_coarse_iters, patience=a.track_patience,
-                         prior_weight=a.prior_weight)
+                         prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
+                         prior_rot_sigma=a.prior_rot_sigma)
+    try:
+        tcfg.validate()
+    except ValueError as e:
+        p.error(str(e))
     for d in (REAL, SIM):
         d.update(pose_refine=a.pose_refine, pose_planar=a.planar, exposure=a.exposure)
     global REAL_REFINE

@@ -145,6 +145,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
         tcfg.patience = args.track_patience
     if args.track_prior_weight is not None:
         tcfg.prior_weight = args.track_prior_weight
+    if args.track_prior_lateral is not None:
+        tcfg.prior_lateral_sigma = args.track_prior_lateral
     tcfg.validate()
     needs_track = [flag for flag, on in (("--track-from-gt", args.track_from_gt),
                                          ("--track-rgbd-odometry", args.track_rgbd_odometry),
@@ -152,7 +154,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
                                          ("--pose-refine", args.pose_refine),
                                          ("--track-coarse-iters", args.track_coarse_iters is not None),
                                          ("--track-patience", args.track_patience is not None),
-                                         ("--track-prior-weight", args.track_prior_weight is not None)) if on]
+                                         ("--track-prior-weight", args.track_prior_weight is not None),
+                                         ("--track-prior-lateral", args.track_prior_lateral is not None)) if on]
     if needs_track and not args.track:
         raise ValueError(f"{', '.join(needs_track)}: only with --track (these options act on tracked poses)")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
@@ -467,6 +470,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--track-prior-weight", type=float, default=None,
                    help="weight of the odometry prior in the tracking loss, per squared standard deviation of the "
                         "odometry's noise (0: odometry is only the initial guess; default 0.001)")
+    m.add_argument("--track-prior-lateral", type=float, default=None,
+                   help="odometry prior's standard deviation across the direction the odometry moved, as a "
+                        "fraction of the distance (a wheeled robot barely slips sideways; default: the same as "
+                        "along it)")
     m.add_argument("--track-rgbd-odometry", action="store_true",
                    help="with --track: start each frame's tracking from OpenCV's RGB-D odometry between a "
                         "render of the map and the frame (one render, a few ms), then run --track-iters "

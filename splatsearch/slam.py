@@ -139,7 +139,10 @@ class TrackerConfig:
     sigma_rot = ``prior_rot_sigma`` rad and sigma_trans = ``prior_trans_sigma`` x the distance
     the odometry moved + ``prior_trans_floor`` m (the odometry's noise per frame). Odometry and
     the image then both count: on flat, weakly textured walls the image alone barely fixes a
-    sideways shift, and a shift there trades against a turn.
+    sideways shift, and a shift there trades against a turn. ``prior_lateral_sigma`` (a fraction
+    of the distance, None: off) gives the translation across the odometry's direction of motion
+    its own, tighter sigma (a wheeled robot's odometry errs along its path, hardly sideways); see
+    :meth:`prior_precision`.
     """
 
     iters: int = 40
@@ -166,6 +169,7 @@ class TrackerConfig:
     prior_rot_sigma: float = 0.01
     prior_trans_sigma: float = 0.05
     prior_trans_floor: float = 1e-3
+    prior_lateral_sigma: float | None = None
 
     def validate(self) -> None:
         if self.iters < 1:
@@ -184,12 +188,35 @@ class TrackerConfig:
                                          and self.prior_trans_floor > 0):
             raise ValueError("a finite prior_weight >= 0, prior_rot_sigma > 0, prior_trans_sigma >= 0 and "
                              "prior_trans_floor > 0 are required")
+        if self.prior_lateral_sigma is not None and not (self.prior_lateral_sigma >= 0
+                                                         and math.isfinite(self.prior_lateral_sigma)):
+            raise ValueError(f"prior_lateral_sigma must be None or a finite value >= 0, got {self.prior_lateral_sigma}")
 
     def prior_sigma(self, odometry_step) -> tuple[float, float]:
         """(sigma_rot rad, sigma_trans m) of the odometry prior for an odometry motion
         ``odometry_step`` (4, 4) between two frames."""
         dist = float(np.linalg.norm(np.asarray(odometry_step, np.float64)[:3, 3]))
         return self.prior_rot_sigma, self.prior_trans_sigma * dist + self.prior_trans_floor
+
+    def prior_precision(self, odometry_step) -> np.ndarray:
+        """(6, 6) weight matrix Q (prior_weight included) of the odometry prior xi^T Q xi on the
+        camera-frame increment xi (rotation vector rad, translation m) for an odometry motion
+        ``odometry_step`` (4, 4, world-to-camera of the new frame times camera-to-world of the
+        previous). Along the direction moved the translation's sigma is :meth:`prior_sigma`'s;
+        across it, ``prior_lateral_sigma`` x the distance + ``prior_trans_floor`` (None: the same
+        as along it)."""
+        step = np.asarray(odometry_step, np.float64)
+        sr, st = self.prior_sigma(step)
+        Q = np.zeros((6, 6))
+        Q[:3, :3] = np.eye(3) * self.prior_weight / sr ** 2
+        Q[3:, 3:] = np.eye(3) * self.prior_weight / st ** 2
+        dist = float(np.linalg.norm(step[:3, 3]))
+        if self.prior_lateral_sigma is not None and dist > 0:
+            d = step[:3, 3] / dist  # the motion's axis in the new camera frame
+            s_lat = self.prior_lateral_sigma * dist + self.prior_trans_floor
+            P = np.outer(d, d)
+            Q[3:, 3:] = self.prior_weight * (P / st ** 2 + (np.eye(3) - P) / s_lat ** 2)
+        return Q
 
 
 @dataclass
@@ -252,7 +279,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             n = jnp.maximum(mf.sum(), 1.0)
             d_err = jnp.abs(out.depth[..., 0] - depth)
             c_err = jnp.abs(out.image - rgb).sum(-1)
-            return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n + jnp.sum(pw * xi * xi)
+            return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n + xi @ pw @ xi
 
         return mask_at, loss, jax.value_and_grad(loss)
 
@@ -368,7 +395,7 @@ def odometry_init(margs, rgb, depth, viewmat, K, width: int, height: int, sil_th
 
 def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int,
           config: TrackerConfig | None = None, *, prior_sigma: tuple[float, float] | None = None,
-          **overrides) -> TrackResult:
+          prior_precision: np.ndarray | None = None, **overrides) -> TrackResult:
     """Refine the world-to-camera pose of an RGB-D frame against a frozen map.
 
     Args:
@@ -379,6 +406,9 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         prior_sigma: (rad, m) standard deviations of ``init_viewmat`` as a prediction (the
             odometry's noise over this frame, see :meth:`TrackerConfig.prior_sigma`): the loss
             then keeps the pose near it, weighted by ``config.prior_weight``. None: no prior.
+        prior_precision: (6, 6) weight matrix Q of the prior term xi^T Q xi on the increment xi
+            (rotation vector rad, translation m) from ``init_viewmat``, already including
+            ``prior_weight`` (see :meth:`TrackerConfig.prior_precision`); replaces ``prior_sigma``.
 
     Returns:
         :class:`TrackResult`; on divergence or without overlap its viewmat is ``init_viewmat``.
@@ -419,10 +449,14 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         if vm_odo is not None:
             d = np.asarray(vm_odo, np.float64) @ np.linalg.inv(vm0.astype(np.float64))
             xi_start = np.concatenate([cv2.Rodrigues(d[:3, :3])[0].ravel(), d[:3, 3]]).astype(np.float32)
-    pw = np.zeros(6, np.float32)
-    if prior_sigma is not None and cfg.prior_weight > 0:
+    pw = np.zeros((6, 6), np.float32)  # prior precision on xi (already scaled by prior_weight)
+    if prior_precision is not None:
+        pw = np.asarray(prior_precision, np.float32)
+        if pw.shape != (6, 6) or not np.all(np.isfinite(pw)):
+            raise ValueError(f"prior_precision must be a finite (6, 6) matrix, got shape {pw.shape}")
+    elif prior_sigma is not None and cfg.prior_weight > 0:
         sr, st = prior_sigma
-        pw[:3], pw[3:] = cfg.prior_weight / sr ** 2, cfg.prior_weight / st ** 2
+        pw[np.arange(6), np.arange(6)] = [cfg.prior_weight / sr ** 2] * 3 + [cfg.prior_weight / st ** 2] * 3
     levels = tuple((np.asarray(k, np.float32).tobytes(), int(w), int(h), int(n), float(lr))
                    for _, _, k, w, h, n, lr in stages)
     images = tuple((jnp.asarray(r, jnp.float32), jnp.asarray(d, jnp.float32)) for r, d, *_ in stages)
@@ -539,11 +573,12 @@ class SLAM:
         first = not any(r.mapped for r in self.results)
         pred = self.predict(odometry)
         # the odometry's motion since the last frame: how far the prediction can be trusted
-        prior_sigma = None
-        if odometry is not None and self._last_odom is not None and np.all(np.isfinite(odometry)):
-            prior_sigma = self.tcfg.prior_sigma(np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom))
+        prior_q = None
+        if odometry is not None and self._last_odom is not None and np.all(np.isfinite(odometry)) \
+                and self.tcfg.prior_weight > 0:
+            prior_q = self.tcfg.prior_precision(np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom))
         if prior is not None and np.all(np.isfinite(prior)):
-            pred, prior_sigma = np.asarray(prior, np.float32), None
+            pred, prior_q = np.asarray(prior, np.float32), None
         if odometry is not None and np.all(np.isfinite(odometry)):
             self._last_odom = np.asarray(odometry, np.float64)
         res: FrameResult
@@ -570,7 +605,7 @@ class SLAM:
         t_track = 0.0
         if self.track_enabled and not first:
             tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg,
-                       prior_sigma=prior_sigma)
+                       prior_precision=prior_q)
             t_track = tr.seconds
             if tr.status == "diverged":
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))

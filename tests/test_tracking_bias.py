@@ -1,0 +1,88 @@
+"""The simulator's camera and the rasterizer share one pinhole model, and the odometry prior's
+shape: checks that pin the sources of a systematic heading bias in tracking."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from splatsearch.slam import TrackerConfig
+
+
+def _warp_error(a, b, K, scale=1.0, extra_yaw=0.0):
+    """Mean colour error between frame b and frame a warped by the pure-rotation homography
+    K' R K'^-1 (K' = K with focal x ``scale``; ``extra_yaw`` rad about the camera's y axis)."""
+    import cv2
+
+    Ks = np.asarray(K, np.float64).copy()
+    Ks[0, 0] *= scale
+    Ks[1, 1] *= scale
+    R = b.viewmat[:3, :3].astype(np.float64) @ a.viewmat[:3, :3].astype(np.float64).T
+    c, s = np.cos(extra_yaw), np.sin(extra_yaw)
+    Ry = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    half = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])  # pixel centres at +0.5
+    Hm = np.linalg.inv(half) @ Ks @ Ry @ R @ np.linalg.inv(Ks) @ half
+    h, w = b.rgb.shape[:2]
+    warped = cv2.warpPerspective(a.rgb, Hm, (w, h), flags=cv2.INTER_LINEAR, borderValue=(-1, -1, -1))
+    ok = warped[..., 0] >= 0
+    ok[:, :6] = ok[:, -6:] = False
+    return float(np.abs(warped - b.rgb)[ok].mean())
+
+
+def test_simulator_camera_matches_its_intrinsics():
+    # two frames of house 1's opening turn in place (same centre, 6 degrees apart): a focal 0.5 %
+    # off, or a heading 0.05 degrees off, aligns them worse than K itself
+    from splatsearch.datasets import sim_trajectory
+
+    frames, K, W, H, _ = sim_trajectory(1, 2, 240, 180)
+    a, b = frames
+    assert np.allclose(a.viewmat[:3, 3] @ a.viewmat[:3, :3], b.viewmat[:3, 3] @ b.viewmat[:3, :3], atol=1e-5)
+    e0 = _warp_error(a, b, K)
+    for scale in (0.995, 1.005):
+        assert e0 < _warp_error(a, b, K, scale=scale)
+    for yaw in (-0.05, 0.05):
+        assert e0 < _warp_error(a, b, K, extra_yaw=np.radians(yaw))
+
+
+def test_rasterizer_projects_with_k():
+    from splatsearch.rasterization import rasterize
+    from splatsearch.sim.env import intrinsics
+
+    K, W, H = intrinsics(320, 240), 320, 240
+    ys, xs = np.mgrid[0:H, 0:W]
+    for P in ([0.0, 0.0, 3.0], [1.2, 0.0, 3.0], [-1.5, 0.7, 2.5]):
+        out = rasterize(jnp.asarray([P], jnp.float32), jnp.asarray([[1.0, 0, 0, 0]]), jnp.full((1, 3), 0.004),
+                        jnp.full(1, 0.9), jnp.ones((1, 3)), jnp.eye(4), jnp.asarray(K), W, H, render_mode="RGB+D")
+        a = np.asarray(out.alpha[..., 0], np.float64)
+        cu, cv = (a * (xs + 0.5)).sum() / a.sum(), (a * (ys + 0.5)).sum() / a.sum()
+        assert cu == pytest.approx(K[0, 0] * P[0] / P[2] + K[0, 2], abs=0.02)
+        assert cv == pytest.approx(K[1, 1] * P[1] / P[2] + K[1, 2], abs=0.02)
+
+
+def test_prior_precision_is_tighter_across_the_motion():
+    cfg = TrackerConfig(prior_weight=1e-3, prior_rot_sigma=0.01, prior_trans_sigma=0.05, prior_trans_floor=1e-3,
+                        prior_lateral_sigma=0.01)
+    step = np.eye(4)
+    step[:3, 3] = [0.0, 0.0, -0.2]  # 20 cm straight ahead
+    Q = cfg.prior_precision(step)
+    assert Q.shape == (6, 6) and np.allclose(Q, Q.T)
+    assert np.allclose(Q[:3, :3], np.eye(3) * 1e-3 / 0.01 ** 2)
+    along = np.array([0, 0, 1.0])
+    across = np.array([1.0, 0, 0])
+    assert along @ Q[3:, 3:] @ along == pytest.approx(1e-3 / (0.05 * 0.2 + 1e-3) ** 2)
+    assert across @ Q[3:, 3:] @ across == pytest.approx(1e-3 / (0.01 * 0.2 + 1e-3) ** 2)
+    # without a lateral sigma, or without motion, the prior is isotropic and matches prior_sigma
+    for c, s in ((TrackerConfig(), step), (cfg, np.eye(4))):
+        sr, st = c.prior_sigma(s)
+        want = np.diag([c.prior_weight / sr ** 2] * 3 + [c.prior_weight / st ** 2] * 3)
+        assert np.allclose(c.prior_precision(s), want)
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError):
+            TrackerConfig(prior_lateral_sigma=bad).validate()
+
+
+def test_bad_prior_precision_is_rejected(tracking_map):
+    from splatsearch.slam import track
+
+    m, f = tracking_map
+    with pytest.raises(ValueError):
+        track(m.map, f.rgb, f.depth, f.viewmat, m.K, m.W, m.H, iters=2, prior_precision=np.eye(3))
