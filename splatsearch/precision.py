@@ -3,8 +3,9 @@
 On NVIDIA GPUs since Ampere, XLA runs a float32 ``dot`` as TF32 (a 10-bit mantissa) unless told
 otherwise. Harmless for the neural networks, it is ruinous for camera geometry: measured on an
 H200, it moved projected means by 0.01-0.05 px and cost TUM fr1/xyz mapping 2-3 dB of PSNR (see
-docs/performance.md, "CUDA"). The mapper's and the tracker's jitted steps are therefore traced
-under :func:`full_precision`; on the CPU it changes nothing.
+docs/performance.md, "CUDA"). The mapper's and the tracker's jitted steps and the pose algebra
+(``so3_exp``, ``perturb_viewmat``, ``planar_basis``) are therefore traced under
+:func:`full_precision`; on the CPU it changes nothing.
 """
 
 from __future__ import annotations

@@ -33,6 +33,7 @@ import optax
 
 from splatsearch.gaussians import GaussianMap, render_args
 from splatsearch.mapper import Mapper, MapperConfig, _bucket, _gather_rows
+from splatsearch.precision import full_precision
 from splatsearch.rasterization import rasterize
 from splatsearch.rgbd import clean_depth
 
@@ -41,6 +42,7 @@ from splatsearch.rgbd import clean_depth
 # se(3)
 # --------------------------------------------------------------------------------------------
 
+@full_precision
 def so3_exp(w):
     """(3, 3) rotation of a rotation vector ``w`` (3,) in radians (Rodrigues, safe at 0)."""
     th2 = jnp.sum(w * w) + 1e-12
@@ -51,6 +53,7 @@ def so3_exp(w):
     return jnp.eye(3) + a * k + b * (k @ k)
 
 
+@full_precision
 def perturb_viewmat(viewmat, xi):
     """``T(xi) @ viewmat``: a world-to-camera matrix moved by xi = (rotation vector (rad),
     translation (m)), both expressed in the camera frame."""
@@ -59,6 +62,7 @@ def perturb_viewmat(viewmat, xi):
     return T @ viewmat
 
 
+@full_precision
 def planar_basis(viewmat: jax.Array) -> jax.Array:
     """(6, 3) basis, for the world-to-camera ``viewmat`` (4, 4), of the camera-frame se(3)
     increments (rotation vector in rad, translation in m) that move a camera in the world's
@@ -316,6 +320,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         return jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last
 
     @jax.jit
+    @full_precision
     def run(margs, images, vm_ref, xi_start, pw):
         basis = planar_basis(vm_ref) if planar else jnp.eye(6, dtype=jnp.float32)
         p0 = basis.T @ xi_start  # the basis is orthonormal

@@ -39,3 +39,15 @@ def test_mapper_step_runs_every_matmul_at_full_precision():
     dots = _dot_lines(text)
     assert dots, "the mapping loss (SSIM windows) holds matmuls"
     assert all("HIGHEST" in ln for ln in dots), [ln for ln in dots if "HIGHEST" not in ln][:3]
+
+
+def test_pose_algebra_runs_at_full_precision_eagerly_and_traced():
+    from splatsearch.slam import perturb_viewmat, planar_basis
+
+    vm = jnp.eye(4, dtype=jnp.float32)
+    xi = jnp.asarray([0.01, -0.02, 0.03, 0.1, 0.0, -0.1], jnp.float32)
+    for fn, args in ((perturb_viewmat, (vm, xi)), (planar_basis, (vm,))):
+        dots = _dot_lines(jax.jit(fn).lower(*args).as_text())
+        assert dots and all("HIGHEST" in ln for ln in dots), fn.__name__
+    out = np.asarray(perturb_viewmat(vm, xi))
+    assert np.allclose(out[:3, 3], [0.1, 0.0, -0.1]) and np.allclose(out[:3, :3] @ out[:3, :3].T, np.eye(3), atol=1e-6)
