@@ -102,6 +102,9 @@ def register_olivia(social_subparsers) -> None:
     e.add_argument("--no-table2", action="store_true", help="skip Table II (the LLU update)")
     e.add_argument("--no-progress", action="store_true", help="no progress bars")
     e.add_argument("--resume", action="store_true", help="keep Table I's finished jobs in OUT/table1_jobs.json")
+    e.add_argument("--baseline-cache", default=None, metavar="DIR",
+                   help="cache the reference, DWA and CoNVOI+DWA episodes in DIR, keyed by scenario, seed, geometry "
+                        "and a SHA-256 of the convoi sources, so later evaluations (other trainings) reuse them")
     add_executor_args(e, default_workers=None)
     e.set_defaults(func=cmd_eval)
 
@@ -171,6 +174,15 @@ def cmd_eval(args) -> int:
     from .train import format_table_one, format_table_two, load_planner, table_two
 
     console = Console()
+    cache = None
+    if args.baseline_cache:
+        from .baseline_cache import BaselineCache
+
+        try:
+            cache = BaselineCache(args.baseline_cache)
+        except (ValueError, OSError) as exc:
+            console.print(f"[red]--baseline-cache: {exc}[/]")
+            return 2
     planner = load_planner(args.checkpoint)
     out = args.out or os.path.dirname(os.path.abspath(args.checkpoint))
     os.makedirs(out, exist_ok=True)
@@ -186,13 +198,13 @@ def cmd_eval(args) -> int:
     with _progress(args.no_progress) as prog, executor_from_args(args) as ex:
         rows = table_one_parallel(args.checkpoint, args.scenarios, args.seeds, baselines, variants, executor=ex,
                                   out_dir=out, resume=args.resume, on_update=_job_task(prog, "Table I"),
-                                  log=console.log)
+                                  log=console.log, cache_dir=cache.directory if cache else None)
         result["table1"] = rows
         md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
         if not args.no_table2:
             llu = LLUConfig(size=args.llu_size, mu=args.llu_mu)
             rows2, _, info = table_two(planner, args.llu_scenario[0], args.llu_adapt_seeds, args.llu_test_seeds, llu,
-                                       log=console.log, progress=prog)
+                                       log=console.log, progress=prog, cache=cache)
             result["table2"] = rows2
             result["llu"] = info
             ef = info["effect"]

@@ -51,6 +51,7 @@ from .planner import (
     run_olivia_episode,
 )
 from .captions import LONG_LEN, SHORT_LEN, TemplateCaptioner, with_action
+from .baseline_cache import BaselineCache
 from .dataset import Samples, build_dataset
 from .features import action_of
 from ..convoi.runner import REFERENCE
@@ -583,21 +584,28 @@ def _mean(rows: list[dict]) -> dict:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if not isinstance(rows[0][k], dict)} if rows else {}
 
 
-def run_baseline(scn, kind: str):
+def run_baseline(scn, kind: str, cache: "BaselineCache | None" = None):
+    """The episode of the non-learned planner ``kind`` ("dwa", "convoi", "human", "expert") on
+    ``scn``; read from / stored in ``cache`` when one is given."""
     from ..convoi.runner import run_episode
 
-    if kind == "convoi":
-        from ..convoi.pipeline import CoNVOI
-        from ..convoi.vlm import RuleBasedVLM
+    def run():
+        if kind == "convoi":
+            from ..convoi.pipeline import CoNVOI
+            from ..convoi.vlm import RuleBasedVLM
 
-        return run_episode(scn, "convoi", convoi=CoNVOI(RuleBasedVLM()))
-    return run_episode(scn, kind)
+            return run_episode(scn, "convoi", convoi=CoNVOI(RuleBasedVLM()))
+        return run_episode(scn, kind)
+
+    return run() if cache is None else cache.get(scn, kind, run)
 
 
 def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = TABLE_ONE_SEEDS,
               baselines: Sequence[str] = ("dwa", "convoi"), variants: Sequence[str] = ("olivia",),
-              log: Callable[[str], None] | None = None, progress=None) -> list[dict]:
-    """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``."""
+              log: Callable[[str], None] | None = None, progress=None,
+              cache: "BaselineCache | None" = None) -> list[dict]:
+    """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``
+    (reference and baseline episodes through ``cache`` when given)."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
     rows = []
     names = {"dwa": "DWA", "convoi": "CoNVOI+DWA"}
@@ -606,11 +614,11 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
         per: dict[str, list] = {}
         for seed in seeds:
             scn = make_scenario(name, seed)
-            ref = run_baseline(scn, REFERENCE)
+            ref = run_baseline(scn, REFERENCE, cache)
             for v in variants:
                 per.setdefault(VARIANT_LABELS[v], []).append(episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref))
             for b in baselines:
-                per.setdefault(names.get(b, b), []).append(episode_metrics(run_baseline(scn, b), ref))
+                per.setdefault(names.get(b, b), []).append(episode_metrics(run_baseline(scn, b, cache), ref))
             if progress is not None:
                 progress.advance(tid)
         wins = win_counts(per)
@@ -673,20 +681,25 @@ def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Se
 def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = LLU_ADAPT_SEEDS,
               test_seeds: Sequence[int] = LLU_TEST_SEEDS, llu: LLUConfig = LLUConfig(),
               train_captions: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
-              progress=None, buffer_every: int = 2) -> tuple[list[dict], OliviaNav, dict]:
+              progress=None, buffer_every: int = 2,
+              cache: BaselineCache | None = None) -> tuple[list[dict], OliviaNav, dict]:
     """Table II form on a scenario held out of training: every variant before and after one LLU
     update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
     ``adapt_seeds`` episodes, as many as it takes (:func:`fill_buffer`); its images are captioned
     by the template captioner (the offline stand-in for the VLM); D_T is rebuilt from its
     offline captions plus the new ones. The info dict holds the update's mechanism
-    (:func:`llu_effect`), D_T's size before and after, and per-seed before/after metrics."""
+    (:func:`llu_effect`), D_T's size before and after, and per-seed before/after metrics.
+    The reference episodes are run once per test seed (through ``cache`` when given)."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
+    refs: dict[int, Any] = {}
 
     def evaluate(p: OliviaNav) -> dict:
         out = {}
         for seed in test_seeds:
             scn = make_scenario(scenario, seed)
-            ref = run_baseline(scn, REFERENCE)
+            if seed not in refs:
+                refs[seed] = run_baseline(scn, REFERENCE, cache)
+            ref = refs[seed]
             for v in VARIANTS:
                 out.setdefault(v, []).append(episode_metrics(run_olivia_episode(scn, p.with_variant(v)), ref))
             if progress is not None:
