@@ -99,6 +99,11 @@ def register_olivia(social_subparsers) -> None:
                    help=f"seeds Table II is measured on (default: {LLU_TEST_SEEDS[0]}-{LLU_TEST_SEEDS[-1]})")
     e.add_argument("--llu-size", type=int, default=50, help="LLU buffer size |B| in images")
     e.add_argument("--llu-mu", type=float, default=0.05, help="eq 4 temperature")
+    e.add_argument("--llu-oncoming-share", type=float, default=0.0,
+                   help="0: the buffer is the first --llu-size views of the adaptation seeds, in order; in (0, 1]: "
+                        "every adaptation seed is driven and the buffer keeps up to this share of views with a person "
+                        "walking head-on toward the robot, the rest spread over all episodes")
+    e.add_argument("--llu-buffer-every", type=int, default=2, help="every N-th plan offers its view to the buffer")
     e.add_argument("--no-table2", action="store_true", help="skip Table II (the LLU update)")
     e.add_argument("--no-progress", action="store_true", help="no progress bars")
     e.add_argument("--resume", action="store_true", help="keep Table I's finished jobs in OUT/table1_jobs.json")
@@ -174,6 +179,12 @@ def cmd_eval(args) -> int:
     from .train import format_table_one, format_table_two, load_planner, table_two
 
     console = Console()
+    if not 0.0 <= args.llu_oncoming_share <= 1.0 or args.llu_buffer_every < 1 or args.llu_size < 2:
+        console.print("[red]--llu-oncoming-share must be in [0, 1], --llu-buffer-every >= 1, --llu-size >= 2[/]")
+        return 2
+    if set(args.llu_adapt_seeds) & set(args.llu_test_seeds):
+        console.print("[red]--llu-adapt-seeds and --llu-test-seeds overlap[/]")
+        return 2
     cache = None
     if args.baseline_cache:
         from .baseline_cache import BaselineCache
@@ -204,12 +215,14 @@ def cmd_eval(args) -> int:
         if not args.no_table2:
             llu = LLUConfig(size=args.llu_size, mu=args.llu_mu)
             rows2, _, info = table_two(planner, args.llu_scenario[0], args.llu_adapt_seeds, args.llu_test_seeds, llu,
-                                       log=console.log, progress=prog, cache=cache)
+                                       log=console.log, progress=prog, cache=cache,
+                                       buffer_every=args.llu_buffer_every, oncoming_share=args.llu_oncoming_share)
             result["table2"] = rows2
             result["llu"] = info
             ef = info["effect"]
             md += (f"\n\n## Table II ({args.llu_scenario[0]}, held out of training; |B| = {info['buffer']} from "
-                   f"adaptation seeds {', '.join(map(str, info['adapt_seeds']))}, i_t = 1)\n\n" + format_table_two(rows2)
+                   f"adaptation seeds {', '.join(map(str, info['adapt_seeds']))}, {info['buffer_oncoming']} of them with "
+                   f"a person walking head-on toward the robot, i_t = 1)\n\n" + format_table_two(rows2)
                    + f"\n\nLLU (eq 4): loss {info['llu_losses'][0]:.3f} -> {info['llu_losses'][-1]:.3f}; buffer captions' "
                    f"actions {ef['caption_actions']}; |D_T| {info['db_before']} -> {info['db_after']}; on the "
                    f"{ef['views']} buffer views the retrieved caption's action matches the new caption "

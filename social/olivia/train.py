@@ -630,22 +630,59 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
 
 
 def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], size: int,
-                buffer_every: int = 2) -> tuple[LLUBuffer, list[int]]:
-    """The LLU buffer B filled to |B| = ``size`` images while OLiVia-Nav drives the adaptation
-    episodes of ``scenario``, one seed after the other until B is full (every ``buffer_every``-th
-    plan stores its view). Returns B and the seeds driven. Raises RuntimeError when the episodes
-    end before B is full: the update is defined on a full buffer."""
-    buf = LLUBuffer(size)
+                buffer_every: int = 2, oncoming_share: float = 0.0) -> tuple[LLUBuffer, list[int]]:
+    """The LLU buffer B of |B| = ``size`` images from OLiVia-Nav driving the adaptation episodes
+    of ``scenario`` (every ``buffer_every``-th plan offers its view). Returns B and the seeds
+    driven. Raises RuntimeError when the episodes end before B is full: the update is defined on
+    a full buffer.
+
+    ``oncoming_share`` 0: the seeds are driven in order until B is full (the first views).
+    Above 0: every seed is driven, and B keeps up to ``oncoming_share`` x |B| of the views
+    where the robot saw someone walking head-on toward it (:func:`planner.oncoming_count`),
+    the rest spread evenly over the other views of all episodes. The first views of a few
+    doorway episodes show a person coming diagonally through the door, and head-on meetings
+    (where the reference steps aside) are rarer; a buffer without them cannot teach them.
+    Only the kept views are captioned."""
+    if not 0.0 <= oncoming_share <= 1.0:
+        raise ValueError(f"oncoming_share must be in [0, 1], got {oncoming_share}")
     used: list[int] = []
-    for seed in adapt_seeds:
-        if buf.full:
-            break
-        run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=buffer_every)
-        used.append(int(seed))
+    if oncoming_share == 0.0:
+        buf = LLUBuffer(size)
+        for seed in adapt_seeds:
+            if buf.full:
+                break
+            run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=buffer_every)
+            used.append(int(seed))
+    else:
+        pool = LLUBuffer(10 ** 9, lazy=True)
+        for seed in adapt_seeds:
+            run_olivia_episode(make_scenario(scenario, seed), planner, buffer=pool, buffer_every=buffer_every)
+            used.append(int(seed))
+        buf = LLUBuffer(size)
+        if len(pool.images) >= size:
+            buf = pool.select(select_views(np.asarray(pool.oncoming), size, oncoming_share), size)
+        else:
+            buf = pool.select(range(len(pool.images)), size)
     if not buf.full:
         raise RuntimeError(f"the LLU buffer holds {len(buf.images)} of |B| = {size} images after the adaptation "
                            f"episodes {tuple(adapt_seeds)}: give more adaptation seeds or a smaller buffer_every")
     return buf, used
+
+
+def select_views(oncoming: np.ndarray, size: int, share: float) -> list[int]:
+    """Indices (sorted) of ``size`` views out of ``len(oncoming)``: up to ``round(share * size)``
+    of those with ``oncoming`` > 0, evenly spaced among them, and the rest evenly spaced among
+    the others (or more oncoming ones when the others run short)."""
+    n = len(oncoming)
+    if size > n:
+        raise ValueError(f"cannot keep {size} of {n} views")
+    on = np.flatnonzero(oncoming > 0)
+    off = np.flatnonzero(oncoming <= 0)
+    k_on = min(len(on), int(round(share * size)))
+    k_on = max(k_on, size - len(off))
+    spread = lambda idx, k: idx[np.unique(np.linspace(0, len(idx) - 1, k).round().astype(int))] if k else idx[:0]  # noqa: E731
+    pick = np.concatenate([spread(on, k_on), spread(off, size - k_on)])
+    return sorted(int(i) for i in pick)
 
 
 def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Sequence[str]) -> dict:
@@ -681,8 +718,8 @@ def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Se
 def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = LLU_ADAPT_SEEDS,
               test_seeds: Sequence[int] = LLU_TEST_SEEDS, llu: LLUConfig = LLUConfig(),
               train_captions: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
-              progress=None, buffer_every: int = 2,
-              cache: BaselineCache | None = None) -> tuple[list[dict], OliviaNav, dict]:
+              progress=None, buffer_every: int = 2, oncoming_share: float = 0.0,
+              cache: BaselineCache | None = None, variants: Sequence[str] = VARIANTS) -> tuple[list[dict], OliviaNav, dict]:
     """Table II form on a scenario held out of training: every variant before and after one LLU
     update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
     ``adapt_seeds`` episodes, as many as it takes (:func:`fill_buffer`); its images are captioned
@@ -691,6 +728,8 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
     (:func:`llu_effect`), D_T's size before and after, and per-seed before/after metrics.
     The reference episodes are run once per test seed (through ``cache`` when given)."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
+    if set(adapt_seeds) & set(test_seeds):
+        raise ValueError(f"adaptation seeds {sorted(set(adapt_seeds) & set(test_seeds))} are also test seeds")
     refs: dict[int, Any] = {}
 
     def evaluate(p: OliviaNav) -> dict:
@@ -700,7 +739,7 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
             if seed not in refs:
                 refs[seed] = run_baseline(scn, REFERENCE, cache)
             ref = refs[seed]
-            for v in VARIANTS:
+            for v in variants:
                 out.setdefault(v, []).append(episode_metrics(run_olivia_episode(scn, p.with_variant(v)), ref))
             if progress is not None:
                 progress.advance(tid)
@@ -708,7 +747,7 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
     before_seeds = evaluate(planner)
-    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every)
+    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share)
     cap = TemplateCaptioner()
     captions = [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
     imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
@@ -738,8 +777,9 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
              "reached_after": int(sum(m["reached"] for m in after_seeds[v])), "n": len(test_seeds),
              "psv_before": before[v]["psv"], "psv_after": after[v]["psv"],
              "min_dist_after": after[v]["min_dist"], "intimate_s_after": after[v]["intimate_s"]}
-            for v in VARIANTS]
+            for v in variants]
     info = {"llu_losses": losses, "buffer": len(buf.images), "adapt_seeds": used, "captions": captions,
+            "buffer_oncoming": int(sum(o > 0 for o in buf.oncoming)), "buffer_episodes": list(buf.episodes),
             "db_before": len(planner.db.captions), "db_after": len(db.captions), "effect": effect,
             "per_seed": {"before": before_seeds, "after": after_seeds}}
     return rows, after_planner, info
