@@ -718,21 +718,24 @@ def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Se
 def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = LLU_ADAPT_SEEDS,
               test_seeds: Sequence[int] = LLU_TEST_SEEDS, llu: LLUConfig = LLUConfig(),
               train_captions: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
-              progress=None, buffer_every: int = 2, oncoming_share: float = 0.0,
-              cache: BaselineCache | None = None, variants: Sequence[str] = VARIANTS) -> tuple[list[dict], OliviaNav, dict]:
+              progress=None, buffer_every: int = 2, oncoming_share: float = 0.5,
+              cache: BaselineCache | None = None, variants: Sequence[str] = VARIANTS,
+              before_variants: Sequence[str] | None = None) -> tuple[list[dict], OliviaNav, dict]:
     """Table II form on a scenario held out of training: every variant before and after one LLU
     update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
     ``adapt_seeds`` episodes, as many as it takes (:func:`fill_buffer`); its images are captioned
     by the template captioner (the offline stand-in for the VLM); D_T is rebuilt from its
     offline captions plus the new ones. The info dict holds the update's mechanism
     (:func:`llu_effect`), D_T's size before and after, and per-seed before/after metrics.
-    The reference episodes are run once per test seed (through ``cache`` when given)."""
+    The reference episodes are run once per test seed (through ``cache`` when given).
+    ``variants``: those evaluated after the update; ``before_variants`` (default: the same)
+    before it (a variant not run before gets NaN and reached -1 there)."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
     if set(adapt_seeds) & set(test_seeds):
         raise ValueError(f"adaptation seeds {sorted(set(adapt_seeds) & set(test_seeds))} are also test seeds")
     refs: dict[int, Any] = {}
 
-    def evaluate(p: OliviaNav) -> dict:
+    def evaluate(p: OliviaNav, variants: Sequence[str]) -> dict:
         out = {}
         for seed in test_seeds:
             scn = make_scenario(scenario, seed)
@@ -746,7 +749,7 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
         return out
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
-    before_seeds = evaluate(planner)
+    before_seeds = evaluate(planner, variants if before_variants is None else before_variants)
     buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share)
     cap = TemplateCaptioner()
     captions = [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
@@ -768,12 +771,14 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
         f"{effect['retrieved_action_right_before']:.2f} -> {effect['retrieved_action_right_after']:.2f}, the selected "
         f"plan performs the caption's action {effect['plan_action_right_before']:.2f} -> "
         f"{effect['plan_action_right_after']:.2f}, selected index changed on {effect['selected_index_changed']:.2f}")
-    after_seeds = evaluate(after_planner)
+    after_seeds = evaluate(after_planner, variants)
     before = {v: _mean(r) for v, r in before_seeds.items()}
     after = {v: _mean(r) for v, r in after_seeds.items()}
+    nan = {"mse": float("nan"), "haus": float("nan"), "psv": float("nan")}
+    before = {v: before.get(v, nan) for v in variants}
     rows = [{"method": VARIANT_LABELS[v], "mse_before": before[v]["mse"], "haus_before": before[v]["haus"],
              "mse_after": after[v]["mse"], "haus_after": after[v]["haus"],
-             "reached_before": int(sum(m["reached"] for m in before_seeds[v])),
+             "reached_before": int(sum(m["reached"] for m in before_seeds.get(v, []))) if v in before_seeds else -1,
              "reached_after": int(sum(m["reached"] for m in after_seeds[v])), "n": len(test_seeds),
              "psv_before": before[v]["psv"], "psv_after": after[v]["psv"],
              "min_dist_after": after[v]["min_dist"], "intimate_s_after": after[v]["intimate_s"]}
