@@ -9,6 +9,6 @@ THESIS_SCENARIOS = SCENARIOS[:4]
 TABLE_ONE_SEEDS = tuple(range(1000, 1010))
 #: the held-out doorway (Table II): the seeds the LLU buffer is filled on and the test seeds; no
 #: training scene ever uses them (training doors come from DOOR_TRAIN_SEEDS with sampled widths)
-LLU_ADAPT_SEEDS = (500, 501, 502, 503)
+LLU_ADAPT_SEEDS = tuple(range(500, 520))
 LLU_TEST_SEEDS = TABLE_ONE_SEEDS
 DOOR_TRAIN_SEEDS = tuple(range(200, 206))

@@ -99,9 +99,20 @@ def register_olivia(social_subparsers) -> None:
                    help=f"seeds Table II is measured on (default: {LLU_TEST_SEEDS[0]}-{LLU_TEST_SEEDS[-1]})")
     e.add_argument("--llu-size", type=int, default=50, help="LLU buffer size |B| in images")
     e.add_argument("--llu-mu", type=float, default=0.05, help="eq 4 temperature")
+    e.add_argument("--llu-oncoming-share", type=float, default=0.5,
+                   help="0: the buffer is the first --llu-size views of the adaptation seeds, in order; in (0, 1]: "
+                        "every adaptation seed is driven and the buffer keeps up to this share of views with a person "
+                        "walking head-on toward the robot, the rest spread over all episodes")
+    e.add_argument("--llu-buffer-every", type=int, default=2, help="every N-th plan offers its view to the buffer")
     e.add_argument("--no-table2", action="store_true", help="skip Table II (the LLU update)")
+    e.add_argument("--no-table1", action="store_true", help="skip Table I (only Table II)")
+    e.add_argument("--llu-ablations-after-only", action="store_true",
+                   help="Table II: run the ablations only after the update (the full model before and after)")
     e.add_argument("--no-progress", action="store_true", help="no progress bars")
     e.add_argument("--resume", action="store_true", help="keep Table I's finished jobs in OUT/table1_jobs.json")
+    e.add_argument("--baseline-cache", default=None, metavar="DIR",
+                   help="cache the reference, DWA and CoNVOI+DWA episodes in DIR, keyed by scenario, seed, geometry "
+                        "and a SHA-256 of the convoi sources, so later evaluations (other trainings) reuse them")
     add_executor_args(e, default_workers=None)
     e.set_defaults(func=cmd_eval)
 
@@ -171,6 +182,24 @@ def cmd_eval(args) -> int:
     from .train import format_table_one, format_table_two, load_planner, table_two
 
     console = Console()
+    if not 0.0 <= args.llu_oncoming_share <= 1.0 or args.llu_buffer_every < 1 or args.llu_size < 2:
+        console.print("[red]--llu-oncoming-share must be in [0, 1], --llu-buffer-every >= 1, --llu-size >= 2[/]")
+        return 2
+    if args.no_table1 and args.no_table2:
+        console.print("[red]--no-table1 and --no-table2 leave nothing to evaluate[/]")
+        return 2
+    if set(args.llu_adapt_seeds) & set(args.llu_test_seeds):
+        console.print("[red]--llu-adapt-seeds and --llu-test-seeds overlap[/]")
+        return 2
+    cache = None
+    if args.baseline_cache:
+        from .baseline_cache import BaselineCache
+
+        try:
+            cache = BaselineCache(args.baseline_cache)
+        except (ValueError, OSError) as exc:
+            console.print(f"[red]--baseline-cache: {exc}[/]")
+            return 2
     planner = load_planner(args.checkpoint)
     out = args.out or os.path.dirname(os.path.abspath(args.checkpoint))
     os.makedirs(out, exist_ok=True)
@@ -184,20 +213,25 @@ def cmd_eval(args) -> int:
     t0 = time.perf_counter()
     result: dict = {"checkpoint": args.checkpoint, "seeds": list(args.seeds)}
     with _progress(args.no_progress) as prog, executor_from_args(args) as ex:
-        rows = table_one_parallel(args.checkpoint, args.scenarios, args.seeds, baselines, variants, executor=ex,
-                                  out_dir=out, resume=args.resume, on_update=_job_task(prog, "Table I"),
-                                  log=console.log)
-        result["table1"] = rows
-        md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
+        md = ""
+        if not args.no_table1:
+            rows = table_one_parallel(args.checkpoint, args.scenarios, args.seeds, baselines, variants, executor=ex,
+                                      out_dir=out, resume=args.resume, on_update=_job_task(prog, "Table I"),
+                                      log=console.log, cache_dir=cache.directory if cache else None)
+            result["table1"] = rows
+            md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
         if not args.no_table2:
             llu = LLUConfig(size=args.llu_size, mu=args.llu_mu)
             rows2, _, info = table_two(planner, args.llu_scenario[0], args.llu_adapt_seeds, args.llu_test_seeds, llu,
-                                       log=console.log, progress=prog)
+                                       log=console.log, progress=prog, cache=cache,
+                                       buffer_every=args.llu_buffer_every, oncoming_share=args.llu_oncoming_share,
+                                       before_variants=("olivia",) if args.llu_ablations_after_only else None)
             result["table2"] = rows2
             result["llu"] = info
             ef = info["effect"]
             md += (f"\n\n## Table II ({args.llu_scenario[0]}, held out of training; |B| = {info['buffer']} from "
-                   f"adaptation seeds {', '.join(map(str, info['adapt_seeds']))}, i_t = 1)\n\n" + format_table_two(rows2)
+                   f"adaptation seeds {', '.join(map(str, info['adapt_seeds']))}, {info['buffer_oncoming']} of its views with "
+                   f"a person walking head-on toward the robot, i_t = 1)\n\n" + format_table_two(rows2)
                    + f"\n\nLLU (eq 4): loss {info['llu_losses'][0]:.3f} -> {info['llu_losses'][-1]:.3f}; buffer captions' "
                    f"actions {ef['caption_actions']}; |D_T| {info['db_before']} -> {info['db_after']}; on the "
                    f"{ef['views']} buffer views the retrieved caption's action matches the new caption "

@@ -107,33 +107,39 @@ def _planner(checkpoint: str, stamp: tuple):
 
 
 def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, baselines: Sequence[str],
-                  variants: Sequence[str]) -> dict:
+                  variants: Sequence[str], cache_dir: str | None = None) -> dict:
     """Metrics of one (scenario, seed) for Table I: ``{method label: episode metrics}``, in the
-    order :func:`~splatsearch.social.olivia.train.table_one` averages them."""
+    order :func:`~splatsearch.social.olivia.train.table_one` averages them. ``cache_dir``: a
+    :class:`~splatsearch.social.olivia.baseline_cache.BaselineCache` directory for the reference
+    and baseline episodes (shared by every worker on this machine)."""
+    from .baseline_cache import BaselineCache
     from .planner import VARIANT_LABELS, run_olivia_episode
     from .train import episode_metrics, run_baseline
     from ..convoi.runner import REFERENCE
     from ..convoi.scenarios import make_scenario
 
     planner = _planner(checkpoint, stamp)
+    cache = BaselineCache(cache_dir) if cache_dir else None
     scn = make_scenario(scenario, seed)
-    ref = run_baseline(scn, REFERENCE)
+    ref = run_baseline(scn, REFERENCE, cache)
     out = {}
     for v in variants:
         out[VARIANT_LABELS[v]] = episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref)
     names = {"dwa": "DWA", "convoi": "CoNVOI+DWA"}
     for b in baselines:
-        out[names.get(b, b)] = episode_metrics(run_baseline(scn, b), ref)
+        out[names.get(b, b)] = episode_metrics(run_baseline(scn, b, cache), ref)
     return out
 
 
 def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequence[int], baselines: Sequence[str],
                        variants: Sequence[str], *, executor, out_dir: str, resume: bool = False,
-                       on_update: Callable | None = None, log: Callable[[str], None] | None = None) -> list[dict]:
+                       on_update: Callable | None = None, log: Callable[[str], None] | None = None,
+                       cache_dir: str | None = None) -> list[dict]:
     """:func:`~splatsearch.social.olivia.train.table_one`'s rows, one job per (scenario, seed).
     Finished jobs go to ``out_dir/table1_jobs.json`` at once; ``resume`` reuses those run with the
     same checkpoint (path, size, mtime), baselines and variants. Raises RuntimeError naming the
-    failed jobs (the finished ones stay saved)."""
+    failed jobs (the finished ones stay saved). ``cache_dir``: reference and baseline episodes are
+    read from / written to this :class:`~splatsearch.social.olivia.baseline_cache.BaselineCache`."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
     from splatsearch.io import atomic_write_bytes
     from splatsearch.parallel import Job
@@ -151,7 +157,8 @@ def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequenc
             saved = json.load(f)
         if saved.get("setup") == setup:
             done = saved["jobs"]
-    jobs = [Job(f"{name}/{seed}", table_one_job, (checkpoint, stamp, name, int(seed), tuple(baselines), tuple(variants)))
+    jobs = [Job(f"{name}/{seed}", table_one_job, (checkpoint, stamp, name, int(seed), tuple(baselines), tuple(variants),
+                                                       os.path.abspath(cache_dir) if cache_dir else None))
             for name in scenarios for seed in seeds if f"{name}/{seed}" not in done]
     _prepare(executor)
     failed = []

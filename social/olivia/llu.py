@@ -121,31 +121,50 @@ class LLUConfig:
 
 @dataclass
 class LLUBuffer:
-    """The image buffer B_I (and the captions B_T once captioned)."""
+    """The image buffer B_I (and the captions B_T once captioned).
+
+    ``oncoming`` holds, per image, how many people the robot saw walking head-on toward it
+    (:func:`~splatsearch.social.olivia.planner.oncoming_count`). With ``lazy`` the scenes are
+    stored as zero-argument callables and made only for the views kept (:meth:`select`): the
+    captioner's label (the reference's rollout from that state) is the expensive part."""
 
     size: int = 50
     images: list = field(default_factory=list)
     scenes: list = field(default_factory=list)
     observations: list = field(default_factory=list)
+    oncoming: list = field(default_factory=list)
+    episodes: list = field(default_factory=list)
+    lazy: bool = False
 
-    def add(self, image: np.ndarray, scene=None, observation=None) -> bool:
-        """Store one image (H, W, 3) (and the privileged scene a template captioner needs, and
-        optionally the whole observation, to show what the update changes on these views);
+    def add(self, image: np.ndarray, scene=None, observation=None, oncoming: int = 0, episode: int = -1) -> bool:
+        """Store one image (H, W, 3) (and the privileged scene a template captioner needs, or with
+        ``lazy`` a callable making it, and optionally the whole observation, to show what the
+        update changes on these views; ``oncoming``: head-on people seen; ``episode``: its seed);
         returns True when the buffer is full."""
         if len(self.images) < self.size:
             self.images.append(np.asarray(image))
             self.scenes.append(scene)
             self.observations.append(observation)
+            self.oncoming.append(int(oncoming))
+            self.episodes.append(int(episode))
         return self.full
 
     @property
     def full(self) -> bool:
         return len(self.images) >= self.size
 
+    def select(self, idx, size: int | None = None) -> "LLUBuffer":
+        """A (non-lazy) buffer of the views ``idx`` (in that order); lazy scenes are made here."""
+        out = LLUBuffer(size or len(idx))
+        for i in idx:
+            sc = self.scenes[i]
+            out.add(self.images[i], sc() if self.lazy and callable(sc) else sc, self.observations[i],
+                    self.oncoming[i], self.episodes[i])
+        return out
+
     def clear(self) -> None:
-        self.images.clear()
-        self.scenes.clear()
-        self.observations.clear()
+        for a in (self.images, self.scenes, self.observations, self.oncoming, self.episodes):
+            a.clear()
 
 
 def llu_update(params, images: np.ndarray, captions: list, cfg: LLUConfig = LLUConfig(),

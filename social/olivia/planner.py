@@ -209,6 +209,26 @@ def side_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarra
     return np.sum(oncoming & (cross < 0) & (gap < near), -1).astype(np.float64)
 
 
+def oncoming_count(pose: np.ndarray, people: np.ndarray, people_vel: np.ndarray, cone: float = 0.44,
+                   radius: float = 4.0, min_speed: float = 0.3) -> int:
+    """How many of the people seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2) m/s,
+    are ahead of the robot at ``pose`` (3,) (x, y, yaw) (within 60° of its heading and ``radius`` m) and walk toward it
+    within ``cone`` rad (25°) of head-on, faster than ``min_speed`` m/s: the situations where
+    the walker steps aside. Only what the robot observes (positions and velocities from its
+    two sweeps), so a deployed robot can tag its own views this way."""
+    if len(people) == 0:
+        return 0
+    heading = np.array([np.cos(pose[2]), np.sin(pose[2])])
+    rel = np.asarray(people, np.float64) - np.asarray(pose[:2], np.float64)
+    dist = np.linalg.norm(rel, axis=-1)
+    speed = np.linalg.norm(people_vel, axis=-1)
+    ahead = rel @ heading > 0.5 * dist  # within 60° of the robot's heading
+    # toward the robot: the person's velocity points back at it within the cone
+    to_robot = -rel / np.maximum(dist[:, None], 1e-6)
+    cos_to = np.sum(np.asarray(people_vel, np.float64) * to_robot, -1) / np.maximum(speed, 1e-6)
+    return int(np.sum(ahead & (dist < radius) & (speed > min_speed) & (cos_to > np.cos(cone))))
+
+
 class OliviaNav:
     """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees, and after an LLU update
     ``clip_tpn``: the SC-CLIP the TPN was trained with, which gives the TPN its E_I while the
@@ -314,8 +334,15 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 # the captioner judges the view as a VLM would: the action the robot should
                 # take there (the expert's), not the one it chose, which would only teach the
                 # encoders the planner's own mistakes
-                act = expert_action(scn, pose, cmds[-1] if cmds else np.zeros(2, np.float32), peds, t, expert_world)
-                buffer.add(obs.image, caption_scene(scn, pose, people[-1], np.asarray(peds.vel), act), obs)
+                def scene(pose=pose, cmd=cmds[-1] if cmds else np.zeros(2, np.float32), peds=peds, t=t,
+                          people_now=people[-1]):
+                    act = expert_action(scn, pose, cmd, peds, t, expert_world)
+                    return caption_scene(scn, pose, people_now, np.asarray(peds.vel), act)
+
+                seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
+                vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
+                buffer.add(obs.image, scene if buffer.lazy else scene(), obs,
+                           oncoming_count(pose, people[-1][seen], vel[seen]), scn.seed)
         since += 1
         cmd, fstate = follow_step(cfg.follower, fstate, jnp.asarray(pose), jnp.asarray(traj_world, F32), scn.dt)
         new_pose = np.asarray(step_unicycle(jnp.asarray(pose), cmd, scn.dt))

@@ -51,6 +51,7 @@ from .planner import (
     run_olivia_episode,
 )
 from .captions import LONG_LEN, SHORT_LEN, TemplateCaptioner, with_action
+from .baseline_cache import BaselineCache
 from .dataset import Samples, build_dataset
 from .features import action_of
 from ..convoi.runner import REFERENCE
@@ -583,21 +584,28 @@ def _mean(rows: list[dict]) -> dict:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if not isinstance(rows[0][k], dict)} if rows else {}
 
 
-def run_baseline(scn, kind: str):
+def run_baseline(scn, kind: str, cache: "BaselineCache | None" = None):
+    """The episode of the non-learned planner ``kind`` ("dwa", "convoi", "human", "expert") on
+    ``scn``; read from / stored in ``cache`` when one is given."""
     from ..convoi.runner import run_episode
 
-    if kind == "convoi":
-        from ..convoi.pipeline import CoNVOI
-        from ..convoi.vlm import RuleBasedVLM
+    def run():
+        if kind == "convoi":
+            from ..convoi.pipeline import CoNVOI
+            from ..convoi.vlm import RuleBasedVLM
 
-        return run_episode(scn, "convoi", convoi=CoNVOI(RuleBasedVLM()))
-    return run_episode(scn, kind)
+            return run_episode(scn, "convoi", convoi=CoNVOI(RuleBasedVLM()))
+        return run_episode(scn, kind)
+
+    return run() if cache is None else cache.get(scn, kind, run)
 
 
 def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, seeds: Sequence[int] = TABLE_ONE_SEEDS,
               baselines: Sequence[str] = ("dwa", "convoi"), variants: Sequence[str] = ("olivia",),
-              log: Callable[[str], None] | None = None, progress=None) -> list[dict]:
-    """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``."""
+              log: Callable[[str], None] | None = None, progress=None,
+              cache: "BaselineCache | None" = None) -> list[dict]:
+    """Table I form: per scenario and method, metrics averaged over the held-out ``seeds``
+    (reference and baseline episodes through ``cache`` when given)."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
     rows = []
     names = {"dwa": "DWA", "convoi": "CoNVOI+DWA"}
@@ -606,11 +614,11 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
         per: dict[str, list] = {}
         for seed in seeds:
             scn = make_scenario(name, seed)
-            ref = run_baseline(scn, REFERENCE)
+            ref = run_baseline(scn, REFERENCE, cache)
             for v in variants:
                 per.setdefault(VARIANT_LABELS[v], []).append(episode_metrics(run_olivia_episode(scn, planner.with_variant(v)), ref))
             for b in baselines:
-                per.setdefault(names.get(b, b), []).append(episode_metrics(run_baseline(scn, b), ref))
+                per.setdefault(names.get(b, b), []).append(episode_metrics(run_baseline(scn, b, cache), ref))
             if progress is not None:
                 progress.advance(tid)
         wins = win_counts(per)
@@ -622,22 +630,59 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
 
 
 def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], size: int,
-                buffer_every: int = 2) -> tuple[LLUBuffer, list[int]]:
-    """The LLU buffer B filled to |B| = ``size`` images while OLiVia-Nav drives the adaptation
-    episodes of ``scenario``, one seed after the other until B is full (every ``buffer_every``-th
-    plan stores its view). Returns B and the seeds driven. Raises RuntimeError when the episodes
-    end before B is full: the update is defined on a full buffer."""
-    buf = LLUBuffer(size)
+                buffer_every: int = 2, oncoming_share: float = 0.0) -> tuple[LLUBuffer, list[int]]:
+    """The LLU buffer B of |B| = ``size`` images from OLiVia-Nav driving the adaptation episodes
+    of ``scenario`` (every ``buffer_every``-th plan offers its view). Returns B and the seeds
+    driven. Raises RuntimeError when the episodes end before B is full: the update is defined on
+    a full buffer.
+
+    ``oncoming_share`` 0: the seeds are driven in order until B is full (the first views).
+    Above 0: every seed is driven, and B keeps up to ``oncoming_share`` x |B| of the views
+    where the robot saw someone walking head-on toward it (:func:`planner.oncoming_count`),
+    the rest spread evenly over the other views of all episodes. The first views of a few
+    doorway episodes show a person coming diagonally through the door, and head-on meetings
+    (where the reference steps aside) are rarer; a buffer without them cannot teach them.
+    Only the kept views are captioned."""
+    if not 0.0 <= oncoming_share <= 1.0:
+        raise ValueError(f"oncoming_share must be in [0, 1], got {oncoming_share}")
     used: list[int] = []
-    for seed in adapt_seeds:
-        if buf.full:
-            break
-        run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=buffer_every)
-        used.append(int(seed))
+    if oncoming_share == 0.0:
+        buf = LLUBuffer(size)
+        for seed in adapt_seeds:
+            if buf.full:
+                break
+            run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=buffer_every)
+            used.append(int(seed))
+    else:
+        pool = LLUBuffer(10 ** 9, lazy=True)
+        for seed in adapt_seeds:
+            run_olivia_episode(make_scenario(scenario, seed), planner, buffer=pool, buffer_every=buffer_every)
+            used.append(int(seed))
+        buf = LLUBuffer(size)
+        if len(pool.images) >= size:
+            buf = pool.select(select_views(np.asarray(pool.oncoming), size, oncoming_share), size)
+        else:
+            buf = pool.select(range(len(pool.images)), size)
     if not buf.full:
         raise RuntimeError(f"the LLU buffer holds {len(buf.images)} of |B| = {size} images after the adaptation "
                            f"episodes {tuple(adapt_seeds)}: give more adaptation seeds or a smaller buffer_every")
     return buf, used
+
+
+def select_views(oncoming: np.ndarray, size: int, share: float) -> list[int]:
+    """Indices (sorted) of ``size`` views out of ``len(oncoming)``: up to ``round(share * size)``
+    of those with ``oncoming`` > 0, evenly spaced among them, and the rest evenly spaced among
+    the others (or more oncoming ones when the others run short)."""
+    n = len(oncoming)
+    if size > n:
+        raise ValueError(f"cannot keep {size} of {n} views")
+    on = np.flatnonzero(oncoming > 0)
+    off = np.flatnonzero(oncoming <= 0)
+    k_on = min(len(on), int(round(share * size)))
+    k_on = max(k_on, size - len(off))
+    spread = lambda idx, k: idx[np.unique(np.linspace(0, len(idx) - 1, k).round().astype(int))] if k else idx[:0]  # noqa: E731
+    pick = np.concatenate([spread(on, k_on), spread(off, size - k_on)])
+    return sorted(int(i) for i in pick)
 
 
 def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Sequence[str]) -> dict:
@@ -673,29 +718,39 @@ def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Se
 def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = LLU_ADAPT_SEEDS,
               test_seeds: Sequence[int] = LLU_TEST_SEEDS, llu: LLUConfig = LLUConfig(),
               train_captions: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
-              progress=None, buffer_every: int = 2) -> tuple[list[dict], OliviaNav, dict]:
+              progress=None, buffer_every: int = 2, oncoming_share: float = 0.5,
+              cache: BaselineCache | None = None, variants: Sequence[str] = VARIANTS,
+              before_variants: Sequence[str] | None = None) -> tuple[list[dict], OliviaNav, dict]:
     """Table II form on a scenario held out of training: every variant before and after one LLU
     update (i_t = 1, |B| = ``llu.size``). The buffer fills while OLiVia-Nav drives the
     ``adapt_seeds`` episodes, as many as it takes (:func:`fill_buffer`); its images are captioned
     by the template captioner (the offline stand-in for the VLM); D_T is rebuilt from its
     offline captions plus the new ones. The info dict holds the update's mechanism
-    (:func:`llu_effect`), D_T's size before and after, and per-seed before/after metrics."""
+    (:func:`llu_effect`), D_T's size before and after, and per-seed before/after metrics.
+    The reference episodes are run once per test seed (through ``cache`` when given).
+    ``variants``: those evaluated after the update; ``before_variants`` (default: the same)
+    before it (a variant not run before gets NaN and reached -1 there)."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
+    if set(adapt_seeds) & set(test_seeds):
+        raise ValueError(f"adaptation seeds {sorted(set(adapt_seeds) & set(test_seeds))} are also test seeds")
+    refs: dict[int, Any] = {}
 
-    def evaluate(p: OliviaNav) -> dict:
+    def evaluate(p: OliviaNav, variants: Sequence[str]) -> dict:
         out = {}
         for seed in test_seeds:
             scn = make_scenario(scenario, seed)
-            ref = run_baseline(scn, REFERENCE)
-            for v in VARIANTS:
+            if seed not in refs:
+                refs[seed] = run_baseline(scn, REFERENCE, cache)
+            ref = refs[seed]
+            for v in variants:
                 out.setdefault(v, []).append(episode_metrics(run_olivia_episode(scn, p.with_variant(v)), ref))
             if progress is not None:
                 progress.advance(tid)
         return out
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
-    before_seeds = evaluate(planner)
-    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every)
+    before_seeds = evaluate(planner, variants if before_variants is None else before_variants)
+    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share)
     cap = TemplateCaptioner()
     captions = [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
     imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
@@ -716,17 +771,20 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
         f"{effect['retrieved_action_right_before']:.2f} -> {effect['retrieved_action_right_after']:.2f}, the selected "
         f"plan performs the caption's action {effect['plan_action_right_before']:.2f} -> "
         f"{effect['plan_action_right_after']:.2f}, selected index changed on {effect['selected_index_changed']:.2f}")
-    after_seeds = evaluate(after_planner)
+    after_seeds = evaluate(after_planner, variants)
     before = {v: _mean(r) for v, r in before_seeds.items()}
     after = {v: _mean(r) for v, r in after_seeds.items()}
+    nan = {"mse": float("nan"), "haus": float("nan"), "psv": float("nan")}
+    before = {v: before.get(v, nan) for v in variants}
     rows = [{"method": VARIANT_LABELS[v], "mse_before": before[v]["mse"], "haus_before": before[v]["haus"],
              "mse_after": after[v]["mse"], "haus_after": after[v]["haus"],
-             "reached_before": int(sum(m["reached"] for m in before_seeds[v])),
+             "reached_before": int(sum(m["reached"] for m in before_seeds.get(v, []))) if v in before_seeds else -1,
              "reached_after": int(sum(m["reached"] for m in after_seeds[v])), "n": len(test_seeds),
              "psv_before": before[v]["psv"], "psv_after": after[v]["psv"],
              "min_dist_after": after[v]["min_dist"], "intimate_s_after": after[v]["intimate_s"]}
-            for v in VARIANTS]
+            for v in variants]
     info = {"llu_losses": losses, "buffer": len(buf.images), "adapt_seeds": used, "captions": captions,
+            "buffer_oncoming": int(sum(o > 0 for o in buf.oncoming)), "buffer_episodes": list(buf.episodes),
             "db_before": len(planner.db.captions), "db_after": len(db.captions), "effect": effect,
             "per_seed": {"before": before_seeds, "after": after_seeds}}
     return rows, after_planner, info
