@@ -41,6 +41,15 @@ run_instance_dist      (R,) float64       metres from the entry centroid to that
 run_is_goal            (R,) bool          the instance is the episode's goal
 run_source             (R,) str           "agent" (during the search) or "supplement"
 run_agent_counts_max   (R,) int64         the agent's own e_max of that run (its matcher)
+run_bbox_min/_max      (R, 3) float64     the entry's extent (metres) when it was verified
+run_centroid           (R, 3) float64     the entry's centroid (metres)
+obs_rgb                (F, H, W, 3) uint8 the stored observations the run's local map was built
+obs_depth              (F, H, W) uint16   from (depth in millimetres, 0 invalid), for
+obs_viewmat            (F, 4, 4) float64  ``benchmarks/nvsm_rerender.py``
+obs_run                (F,) int64         run index of each observation
+xobs_*                 as obs_*           the same from a shadow store of ``SHADOW_FRAMES``
+                                          observations per object (more keyframes; the agent
+                                          itself used only obs_*)
 episode                () str             the episode as JSON; meta: () str JSON of settings
 =====================  =================  ==================================================
 """
@@ -122,8 +131,35 @@ def split_views(rendered: np.ndarray, holes: np.ndarray, alpha: np.ndarray, alph
     return out, interior, ((np.asarray(alpha) < alpha_tau) & ~interior) | outside
 
 
+#: observations per object the shadow store keeps (the agent keeps ``LocalMapConfig.max_frames``)
+SHADOW_FRAMES = 10
+
+
 @contextlib.contextmanager
-def recording_nvsm(runs: list, source: list):
+def shadow_observations(max_frames: int = SHADOW_FRAMES):
+    """Yield an :class:`ObservationStore` of ``max_frames`` per object that receives every
+    observation the agent's own store receives (inside the ``with`` block, this process only), so
+    that local maps from more keyframes can be built later without changing what the agent does."""
+    from splatsearch.search.local_map import ObservationStore
+
+    shadow = ObservationStore(max_frames)
+    orig = ObservationStore.add
+
+    def add(self, entry_id, rgb, depth, viewmat):
+        orig(self, entry_id, rgb, depth, viewmat)
+        if self is not shadow:
+            shadow.min_separation = self.min_separation
+            orig(shadow, entry_id, rgb, depth, viewmat)
+
+    ObservationStore.add = add
+    try:
+        yield shadow
+    finally:
+        ObservationStore.add = orig
+
+
+@contextlib.contextmanager
+def recording_nvsm(runs: list, source: list, shadow=None):
     """Record every :meth:`Verifier.verify` that returns a result into ``runs`` (dicts with the
     entry, its centroid and label, the result, the renders' opacity and ``source[0]``).
 
@@ -149,7 +185,10 @@ def recording_nvsm(runs: list, source: list):
             runs.append({"entry": int(entry_id), "label": e.label, "centroid": np.array(e.centroid, float),
                          "score": score, "alpha": last_alpha[0], "source": source[0],
                          "alpha_tau": float(self.nvsm_config.alpha_tau),
-                         "crop_fill": float(self.nvsm_config.crop_fill)})
+                         "crop_fill": float(self.nvsm_config.crop_fill),
+                         "frames": [(f.rgb, f.depth, f.viewmat) for f in observations[entry_id]],
+                         "xframes": [(f.rgb, f.depth, f.viewmat) for f in (shadow[entry_id] if shadow else [])],
+                         "bbox": (np.array(e.bbox_min, float), np.array(e.bbox_max, float))})
         return score
 
     verification.Verifier.verify, object_search.render_novel_views = verify, render
@@ -180,7 +219,7 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
     def on_step(agent, _obs, _info):
         holder["agent"] = agent
 
-    with recording_nvsm(runs, source):
+    with shadow_observations() as shadow, recording_nvsm(runs, source, shadow):
         res = run_episode(ep, cfg, env=env, on_step=on_step, max_steps=max_steps)
         agent = holder.get("agent")
         if supplement and agent is not None:
@@ -193,9 +232,10 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
     goal = goal_image(env, ep).rgb
     inp = OpenCVInpainter()
     arrays: dict[str, list] = {k: [] for k in ("rendered", "alpha", "holes", "background", "opencv", "viewmats",
-                                               "view_run")}
+                                               "view_run", "obs_rgb", "obs_depth", "obs_viewmat", "obs_run", "xobs_rgb",
+                                               "xobs_depth", "xobs_viewmat", "xobs_run")}
     meta_runs: dict[str, list] = {k: [] for k in ("entry", "instance", "instance_dist", "is_goal", "source",
-                                                  "agent_counts_max")}
+                                                  "agent_counts_max", "bbox_min", "bbox_max", "centroid")}
     for i, r in enumerate(runs):
         s = r["score"]
         holes = np.asarray(s.holes, bool)
@@ -209,6 +249,16 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
         arrays["opencv"].append(_u8(inp.inpaint(rendered, holes)))
         arrays["viewmats"].append(np.asarray(s.viewmats, np.float64))
         arrays["view_run"].append(np.full(len(rendered), i, np.int64))
+        for pre, key in (("obs", "frames"), ("xobs", "xframes")):
+            for rgb, depth, vm in r.get(key, []):
+                arrays[f"{pre}_rgb"].append(_u8(rgb)[None])
+                # millimetres: the local map's depth, exactly enough for re-building it
+                arrays[f"{pre}_depth"].append(np.round(np.asarray(depth, np.float64) * 1000).astype(np.uint16)[None])
+                arrays[f"{pre}_viewmat"].append(np.asarray(vm, np.float64)[None])
+                arrays[f"{pre}_run"].append(np.array([i], np.int64))
+        meta_runs["bbox_min"].append(r["bbox"][0])
+        meta_runs["bbox_max"].append(r["bbox"][1])
+        meta_runs["centroid"].append(np.asarray(r["centroid"], np.float64))
         inst, dist = _nearest_instance(env.house, r["label"], r["centroid"])
         meta_runs["entry"].append(r["entry"])
         meta_runs["instance"].append(inst)
@@ -218,9 +268,13 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
         meta_runs["agent_counts_max"].append(int(s.e_max))
     H, W = ep.goal_height, ep.goal_width
     empty = {"rendered": (0, H, W, 3), "alpha": (0, H, W), "holes": (0, H, W), "background": (0, H, W),
-             "opencv": (0, H, W, 3), "viewmats": (0, 4, 4), "view_run": (0,)}
+             "opencv": (0, H, W, 3), "viewmats": (0, 4, 4), "view_run": (0,), "obs_rgb": (0, H, W, 3),
+             "obs_depth": (0, H, W), "obs_viewmat": (0, 4, 4), "obs_run": (0,), "xobs_rgb": (0, H, W, 3),
+             "xobs_depth": (0, H, W), "xobs_viewmat": (0, 4, 4), "xobs_run": (0,)}
     dtypes = {"rendered": np.uint8, "alpha": np.uint8, "holes": bool, "background": bool, "opencv": np.uint8,
-              "viewmats": np.float64, "view_run": np.int64}
+              "viewmats": np.float64, "view_run": np.int64, "obs_rgb": np.uint8, "obs_depth": np.uint16,
+              "obs_viewmat": np.float64, "obs_run": np.int64, "xobs_rgb": np.uint8, "xobs_depth": np.uint16,
+              "xobs_viewmat": np.float64, "xobs_run": np.int64}
     out = {k: (np.concatenate(v) if v else np.zeros(empty[k], dtypes[k])) for k, v in arrays.items()}
     out.update({f"run_{k}": np.asarray(v) for k, v in meta_runs.items()})
     out["run_source"] = np.asarray(meta_runs["source"], dtype="<U10")
@@ -228,6 +282,8 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
         out[f"run_{k}"] = np.asarray(meta_runs[k], np.int64)
     out["run_instance_dist"] = np.asarray(meta_runs["instance_dist"], np.float64)
     out["run_is_goal"] = np.asarray(meta_runs["is_goal"], bool)
+    for k in ("bbox_min", "bbox_max", "centroid"):
+        out[f"run_{k}"] = np.asarray(meta_runs[k], np.float64).reshape(-1, 3)
     out["goal"] = _u8(goal)
     out["K"], out["width"], out["height"] = np.asarray(env.K, np.float64), np.int64(W), np.int64(H)
     out["episode"] = np.asarray(json.dumps(ep.to_json()))
