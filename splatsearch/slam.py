@@ -107,6 +107,12 @@ def pose_distance(vm_a, vm_b) -> tuple[float, float]:
 # tracking
 # --------------------------------------------------------------------------------------------
 
+
+def diagonal_precision(weight: float, sigma_rot: float, sigma_trans: float) -> np.ndarray:
+    """(6, 6) diagonal weight matrix ``weight / sigma^2`` of a pose prior on the se(3) increment
+    (rotation vector rad: ``sigma_rot``; translation m: ``sigma_trans``)."""
+    return np.diag([weight / sigma_rot ** 2] * 3 + [weight / sigma_trans ** 2] * 3)
+
 @dataclass
 class TrackerConfig:
     """Tracking settings.
@@ -211,9 +217,7 @@ class TrackerConfig:
         as along it)."""
         step = np.asarray(odometry_step, np.float64)
         sr, st = self.prior_sigma(step)
-        Q = np.zeros((6, 6))
-        Q[:3, :3] = np.eye(3) * self.prior_weight / sr ** 2
-        Q[3:, 3:] = np.eye(3) * self.prior_weight / st ** 2
+        Q = diagonal_precision(self.prior_weight, sr, st)
         dist = float(np.linalg.norm(step[:3, 3]))
         if self.prior_lateral_sigma is not None and dist > 0:
             d = step[:3, 3] / dist  # the motion's axis in the new camera frame
@@ -460,8 +464,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         if pw.shape != (6, 6) or not np.all(np.isfinite(pw)):
             raise ValueError(f"prior_precision must be a finite (6, 6) matrix, got shape {pw.shape}")
     elif prior_sigma is not None and cfg.prior_weight > 0:
-        sr, st = prior_sigma
-        pw[np.arange(6), np.arange(6)] = [cfg.prior_weight / sr ** 2] * 3 + [cfg.prior_weight / st ** 2] * 3
+        pw = diagonal_precision(cfg.prior_weight, *prior_sigma).astype(np.float32)
     levels = tuple((np.asarray(k, np.float32).tobytes(), int(w), int(h), int(n), float(lr))
                    for _, _, k, w, h, n, lr in stages)
     images = tuple((jnp.asarray(r, jnp.float32), jnp.asarray(d, jnp.float32)) for r, d, *_ in stages)
