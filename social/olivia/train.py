@@ -658,7 +658,6 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
         for seed in adapt_seeds:
             run_olivia_episode(make_scenario(scenario, seed), planner, buffer=pool, buffer_every=buffer_every)
             used.append(int(seed))
-        buf = LLUBuffer(size)
         if len(pool.images) >= size:
             buf = pool.select(select_views(np.asarray(pool.oncoming), size, oncoming_share), size)
         else:
