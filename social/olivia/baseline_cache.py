@@ -39,10 +39,8 @@ def _digest_of(directory: str, stamp: tuple) -> str:
 def source_digest(directory: str = _CONVOI_DIR) -> str:
     """SHA-256 hex digest over the names and bytes of the ``.py`` files in ``directory``
     (default: the convoi package: scenarios, pedestrian simulator, DWA, CoNVOI, walker)."""
-    files = sorted(n for n in os.listdir(directory) if n.endswith(".py"))
-    stamp = tuple((n, os.stat(os.path.join(directory, n)).st_mtime_ns, os.stat(os.path.join(directory, n)).st_size)
-                  for n in files)
-    return _digest_of(directory, stamp)
+    stats = [(n, os.stat(os.path.join(directory, n))) for n in sorted(os.listdir(directory)) if n.endswith(".py")]
+    return _digest_of(directory, tuple((n, st.st_mtime_ns, st.st_size) for n, st in stats))
 
 
 def entry_key(scn, kind: str, digest: str | None = None) -> str:
@@ -74,9 +72,10 @@ class BaselineCache:
         self.hits = 0
         self.misses = 0
 
-    def path(self, scn, kind: str) -> str:
-        """Where the entry of (``scn``, ``kind``) is stored."""
-        return os.path.join(self.directory, kind, f"{scn.name}-{int(scn.seed)}-{self.key(scn, kind)[:16]}.pkl")
+    def path(self, scn, kind: str, key: str | None = None) -> str:
+        """Where the entry of (``scn``, ``kind``) is stored (``key``: its :meth:`key`, if known)."""
+        key = key or self.key(scn, kind)
+        return os.path.join(self.directory, kind, f"{scn.name}-{int(scn.seed)}-{key[:16]}.pkl")
 
     def key(self, scn, kind: str) -> str:
         """:func:`entry_key` with this cache's source digest."""
@@ -85,12 +84,13 @@ class BaselineCache:
     def get(self, scn, kind: str, run: Callable[[], object]):
         """The cached episode of ``kind`` on ``scn``, or ``run()``'s result, stored for next time.
         An unreadable entry (truncated, another format) counts as a miss and is overwritten."""
-        p = self.path(scn, kind)
+        key = self.key(scn, kind)
+        p = self.path(scn, kind, key)
         if os.path.exists(p):
             try:
                 with open(p, "rb") as f:
                     rec = pickle.load(f)
-                if rec.get("key") == self.key(scn, kind):
+                if rec.get("key") == key:
                     self.hits += 1
                     return rec["episode"]
             except (OSError, EOFError, pickle.UnpicklingError, AttributeError, KeyError, TypeError, ValueError):
@@ -98,6 +98,6 @@ class BaselineCache:
         self.misses += 1
         res = run()
         os.makedirs(os.path.dirname(p), exist_ok=True)
-        atomic_write_bytes(p, pickle.dumps({"key": self.key(scn, kind), "episode": res},
+        atomic_write_bytes(p, pickle.dumps({"key": key, "episode": res},
                                            protocol=pickle.HIGHEST_PROTOCOL))
         return res
