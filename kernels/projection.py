@@ -103,7 +103,7 @@ def camera_adjoint(p: wp.vec3, Sc: wp.mat33, fx: float, fy: float, lim: wp.vec4,
 
     # camera-space point: mean2d, depth and the Jacobian's dependence on p
     v_p = wp.vec3(fx * rz * vm2[0], fy * rz * vm2[1],
-                  -(fx * p[0] * vm2[0] + fy * p[1] * vm2[1]) * rz2 + v_depth)
+                  -(fx * p[0] * vm2[0] + fy * p[1] * vm2[1]) * rz2) + (v_depth / wp.length(p)) * p
     x_in = 1.0
     if u > lim[0] or u < -lim[1]:
         x_in = 0.0
@@ -150,7 +150,10 @@ def project_fwd_kernel(
     radii[i] = wp.vec2i(0, 0)
     means2d[i] = wp.vec2(0.0, 0.0)
     conics[i] = wp.vec3(0.0, 0.0, 0.0)
-    depths[i] = z
+    # sort and composite by the distance along the ray, which a turn of the camera leaves unchanged
+    # (the z-depth of a point changes with its angle off the axis); the rasterizer turns the
+    # composited distance back into z-depth per pixel
+    depths[i] = wp.length(p)
     if z < near or z > far:
         return
     o = opacities[i]

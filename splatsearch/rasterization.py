@@ -34,7 +34,9 @@ class RasterOutput(NamedTuple):
 
     Attributes:
         image: (..., H, W, C) composited colours (background included), or None in "D"/"ED" mode.
-        depth: (..., H, W, 1) depth in metres, "D" (sum w z) or "ED" (D / alpha); None in "RGB" mode.
+        depth: (..., H, W, 1) z-depth in metres, "D" (sum w z) or "ED" (D / alpha); None in "RGB" mode.
+            Each Gaussian counts as the point at its distance along the pixel's ray (z = distance
+            x the ray's z per unit length), and Gaussians composite in order of that distance.
         alpha: (..., H, W, 1) accumulated opacity, 1 - T.
         meta: dict with ``radii`` (..., N, 2) int32 pixel radii (0 = culled), ``n_isect`` (...,)
             int32 tile intersections, ``width``, ``height``, ``tile_size``.
@@ -366,7 +368,7 @@ def rasterize(
         K: (3, 3) pinhole intrinsics in pixels, or (B, 3, 3); pixel centres at +0.5.
         width, height: image size in pixels (static).
         render_mode: "RGB", "D", "ED", "RGB+D" or "RGB+ED". "D" is the alpha-weighted depth
-            sum, "ED" the expected depth D / alpha.
+            sum, "ED" the expected depth D / alpha (see :class:`RasterOutput`).
         near_plane, far_plane: camera-depth culling range in metres.
         eps2d: low-pass added to the 2-D covariance diagonal, in px^2.
         backgrounds: optional (C,) or (B, C) colour composited behind the Gaussians.
@@ -474,6 +476,14 @@ def rasterize(
     return RasterOutput(image, depth, alpha, meta)
 
 
+def _z_per_distance(cfg: _Cfg, K):
+    """(H, W, 1) z-depth per unit of distance along each pixel's ray (pixel centres at +0.5)."""
+    K = jax.lax.stop_gradient(K)
+    x = (jnp.arange(cfg.width, dtype=jnp.float32) + 0.5 - K[0, 2]) / K[0, 0]
+    y = (jnp.arange(cfg.height, dtype=jnp.float32) + 0.5 - K[1, 2]) / K[1, 1]
+    return jax.lax.rsqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2)[..., None]
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
 def _render_cameras(cfg: _Cfg, render_mode: str, batched: bool, means, quats, scales, opacities, colors, viewmats,
                     Ks, backgrounds):
@@ -482,6 +492,7 @@ def _render_cameras(cfg: _Cfg, render_mode: str, batched: bool, means, quats, sc
     images, depths_, alphas, radii, n_isects = [], [], [], [], []
     for b in range(viewmats.shape[0]):
         img, dep, alp, rad, nis = _core(cfg, means, quats, scales, opacities, colors, viewmats[b], Ks[b])
+        dep = dep * _z_per_distance(cfg, Ks[b])
         if backgrounds is not None:
             img = img + (1.0 - alp) * backgrounds[b]
         if render_mode.endswith("ED"):

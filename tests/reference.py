@@ -67,7 +67,8 @@ def project(means, quats, scales, opacities, viewmat, K, width, height, near=0.0
     valid &= ~((rx <= 0) & (ry <= 0))
     valid &= ~((mx + rx <= 0) | (mx - rx >= width) | (my + ry <= 0) | (my - ry >= height))
     radii = jnp.where(valid[:, None], jnp.stack([rx, ry], -1), 0).astype(jnp.int32)
-    return jnp.stack([mx, my], -1), conics, z, radii, valid
+    # depth order and composited depth use the distance along the ray (turn-invariant)
+    return jnp.stack([mx, my], -1), conics, jnp.sqrt(x * x + y * y + z * z), radii, valid
 
 
 def rasterize_dense(means, quats, scales, opacities, colors, viewmat, K, width, height,
@@ -101,7 +102,10 @@ def rasterize_dense(means, quats, scales, opacities, colors, viewmat, K, width, 
     init = (jnp.ones(P, means.dtype), jnp.zeros((P, C), means.dtype), jnp.zeros(P, means.dtype),
             jnp.zeros(P, bool))
     (T, acc, dep, _), _ = jax.lax.scan(step, init, order) if N else (init, None)
-    return (acc.reshape(height, width, C), dep.reshape(height, width, 1),
+    # back to z-depth: per pixel, z per unit of distance along its ray
+    K = jnp.asarray(K, means.dtype)
+    zfac = 1.0 / jnp.sqrt(1.0 + ((pix[:, 0] - K[0, 2]) / K[0, 0]) ** 2 + ((pix[:, 1] - K[1, 2]) / K[1, 1]) ** 2)
+    return (acc.reshape(height, width, C), (dep * zfac).reshape(height, width, 1),
             (1 - T).reshape(height, width, 1), radii)
 
 
