@@ -86,3 +86,51 @@ def test_bad_prior_precision_is_rejected(tracking_map):
     m, f = tracking_map
     with pytest.raises(ValueError):
         track(m.map, f.rgb, f.depth, f.viewmat, m.K, m.W, m.H, iters=2, prior_precision=np.eye(3))
+
+
+def _yaw_cam(deg: float) -> np.ndarray:
+    """World-to-camera 4x4 of a camera at the origin turned ``deg`` about its y axis."""
+    a = np.radians(deg)
+    vm = np.eye(4, dtype=np.float32)
+    vm[:3, :3] = [[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]]
+    return vm
+
+
+def test_composite_order_does_not_change_when_the_camera_turns_in_place():
+    # A is nearer than B along the rays, but 3 degrees nearer the optical axis of a camera looking
+    # 20 degrees away, so B has the smaller z there. Turning in place must not change which one
+    # is in front (the order of camera z did: a turn then looked like a small extra turn).
+    from splatsearch.rasterization import rasterize
+    from splatsearch.sim.env import intrinsics
+
+    K, W, H = intrinsics(320, 240), 320, 240
+    d = lambda deg, r: [r * np.sin(np.radians(deg)), 0.0, r * np.cos(np.radians(deg))]  # noqa: E731
+    means = jnp.asarray([d(20, 2.0), d(23, 2.01)], jnp.float32)
+    colors = jnp.asarray([[1.0, 0, 0], [0, 1.0, 0]])
+    mid = np.radians(21.5)
+    fronts = []
+    for cam in (0.0, 20.0):
+        vm = _yaw_cam(cam)
+        out = rasterize(means, jnp.asarray([[1.0, 0, 0, 0]] * 2), jnp.full((2, 3), 0.06), jnp.full(2, 0.9), colors,
+                        jnp.asarray(vm), jnp.asarray(K), W, H, render_mode="RGB+D")
+        u = int(K[0, 0] * np.tan(mid - np.radians(cam)) + K[0, 2])
+        px = np.asarray(out.image[int(K[1, 2]), u])
+        fronts.append("A" if px[0] > px[1] else "B")
+    assert fronts == ["A", "A"]
+
+
+def test_rendered_depth_is_the_z_of_the_point_on_the_pixel_ray():
+    # each Gaussian counts as the point at its distance along the pixel's ray: at the pixels
+    # around its projection the depth is that point's z (its own camera z where the ray meets it)
+    from splatsearch.rasterization import rasterize
+    from splatsearch.sim.env import intrinsics
+
+    K, W, H = intrinsics(320, 240), 320, 240
+    for P in ([0.0, 0.0, 3.0], [1.5, 0.0, 3.0], [-1.4, 0.9, 2.5]):
+        out = rasterize(jnp.asarray([P], jnp.float32), jnp.asarray([[1.0, 0, 0, 0]]), jnp.full((1, 3), 0.004),
+                        jnp.full(1, 0.99), jnp.ones((1, 3)), jnp.eye(4), jnp.asarray(K), W, H, render_mode="RGB+ED")
+        u0 = int(K[0, 0] * P[0] / P[2] + K[0, 2])
+        v0 = int(K[1, 1] * P[1] / P[2] + K[1, 2])
+        for v, u in ((v0, u0), (v0, u0 - 1), (v0 - 1, u0)):
+            ray = np.array([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], 1.0])
+            assert float(out.depth[v, u, 0]) == pytest.approx(np.linalg.norm(P) / np.linalg.norm(ray), rel=1e-5)
