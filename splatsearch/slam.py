@@ -113,6 +113,10 @@ def diagonal_precision(weight: float, sigma_rot: float, sigma_trans: float) -> n
     (rotation vector rad: ``sigma_rot``; translation m: ``sigma_trans``)."""
     return np.diag([weight / sigma_rot ** 2] * 3 + [weight / sigma_trans ** 2] * 3)
 
+#: tracking solvers: "adam" (first order, SplaTAM's) and "gn" (Levenberg-Marquardt on IRLS weights)
+SOLVERS = ("adam", "gn")
+
+
 @dataclass
 class TrackerConfig:
     """Tracking settings.
@@ -180,8 +184,22 @@ class TrackerConfig:
     prior_trans_sigma: float = 0.05
     prior_trans_floor: float = 1e-3
     prior_lateral_sigma: float | None = None
+    solver: str = "adam"
+    gn_iters: int = 5
+    gn_fd_step: float = 1e-3
+    gn_eps_depth: float = 1e-3
+    gn_eps_color: float = 1e-2
+    gn_step_tol: float = 1e-5
+    gn_eps_rel: float = 2.0
+    gn_refresh: bool = False
 
     def validate(self) -> None:
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if self.gn_iters < 1 or not (self.gn_fd_step > 0 and self.gn_eps_depth > 0 and self.gn_eps_color > 0
+                                     and self.gn_step_tol >= 0):
+            raise ValueError("gn_iters >= 1, gn_fd_step > 0, gn_eps_depth > 0, gn_eps_color > 0 and "
+                             "gn_step_tol >= 0 are required")
         if self.iters < 1:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
         if self.coarse_iters < 0 or self.coarse_downscale < 1 or self.patience < 0 or self.tol < 0:
@@ -254,7 +272,7 @@ _TRACK_DIFF = "viewmat"
 def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
-           cfg.tol, cfg.patience)
+           cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol, cfg.gn_eps_rel, cfg.gn_refresh)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar
@@ -289,13 +307,111 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             c_err = jnp.abs(out.image - rgb).sum(-1)
             return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n + xi @ pw @ xi
 
-        return mask_at, loss, jax.value_and_grad(loss)
+        def residual(p, margs, rgb, depth, vm_ref, basis):
+            """(H, W, 4) rendered minus observed (depth m, then colour) at p."""
+            out = render(basis @ p, margs, vm_ref)
+            return jnp.concatenate([out.depth - depth[..., None], out.image - rgb], -1)
+
+        return mask_at, loss, jax.value_and_grad(loss), residual
 
     fns = [make_level(Kb, W, H) for Kb, W, H, _, _ in levels]
+    h_fd = cfg.gn_fd_step
+    eps = jnp.array([cfg.gn_eps_depth] + [cfg.gn_eps_color] * 3, jnp.float32)
+    step_tol = cfg.gn_step_tol
+    eps_rel = cfg.gn_eps_rel
+    refresh = cfg.gn_refresh
+
+    def _fixed_metric(p, n_iters, vg, args, Hm, mf):
+        """Levenberg-Marquardt steps with the metric ``Hm`` held fixed and the exact gradient of
+        the loss (the rasterizer's pose-only backward) at every step: one forward + backward per
+        step instead of k + 1 forwards, and the fixed point is the loss's own minimum whatever
+        the metric's error."""
+        k_dim = p.shape[0]
+        L0, g0 = vg(p, *args)
+
+        def cond(c):
+            return (c[0] < n_iters) & ~c[-1]
+
+        def body(c):
+            it, p, L, g, lam, done = c
+            A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(k_dim, dtype=Hm.dtype)
+            delta = -jnp.linalg.solve(A, jnp.where(jnp.isfinite(g), g, 0.0))
+            delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
+            L_new, g_new = vg(p + delta, *args)
+            accept = L_new < L
+            small = jnp.max(jnp.abs(delta)) < step_tol
+            p, L, g = (jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L), jnp.where(accept, g_new, g))
+            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
+            return it + 1, p, L, g, lam, small | (lam > 1e6)
+
+        c = (jnp.int32(0), p, L0, g0, jnp.float32(1e-4), jnp.asarray(False))
+        k, p, L, _, _, _ = jax.lax.while_loop(cond, body, c)
+        return p, L, k, mf, L
+
+    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
+        """Levenberg-Marquardt from p on one level, same loss and trusted pixels as the Adam stage.
+
+        The L1 terms are reweighted (IRLS): at residual r the quadratic model of |r| has curvature
+        1 / max(|r|, eps) and slope sign(r), which majorises |r|, so a step that lowers the model
+        lowers the loss while the linearisation holds. The Jacobian of the rendered depth and
+        colour w.r.t. the k pose parameters comes from k forward-difference renders (the
+        rasterizer has no forward mode); a rejected step raises the damping and reuses it."""
+        mask_at, loss, vg, residual = fn
+        k_dim = p.shape[0]
+        mf = mask_at(basis @ p, margs, depth, vm_ref)
+        n = jnp.maximum(mf.sum(), 1.0)
+        a = mf[..., None] * jnp.array([1.0, w_c, w_c, w_c], jnp.float32) / n  # (H, W, 4) L1 weights
+        Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
+
+        def value(p, r):
+            return jnp.sum(a * jnp.abs(r)) + p @ Pp @ p
+
+        def normal_eq(p, r):
+            cols = [(residual(p + h_fd * jnp.eye(k_dim, dtype=p.dtype)[j], margs, rgb, depth, vm_ref, basis) - r)
+                    / h_fd for j in range(k_dim)]
+            J = jnp.stack(cols, -1)  # (H, W, 4, k)
+            ar = jnp.abs(r)
+            scale = jnp.sum(ar * mf[..., None], (0, 1)) / n  # mean |residual| per channel
+            w = a / jnp.maximum(ar, jnp.maximum(eps, eps_rel * scale))
+            Hm = jnp.einsum("hwck,hwc,hwcl->kl", J, w, J) + 2.0 * Pp
+            g = jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r)) + 2.0 * Pp @ p
+            return Hm, g
+
+        r0 = residual(p, margs, rgb, depth, vm_ref, basis)
+        L0 = value(p, r0)
+        H0, g0 = normal_eq(p, r0)
+
+        if not refresh:
+            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), H0, mf)
+
+        def cond(c):
+            it, _, _, _, _, _, _, done = c
+            return (it < n_iters) & ~done
+
+        def body(c):
+            it, p, L, r, Hm, g, lam, done = c
+            A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(k_dim, dtype=Hm.dtype)
+            delta = -jnp.linalg.solve(A, g)
+            delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
+            p_new = p + delta
+            r_new = residual(p_new, margs, rgb, depth, vm_ref, basis)
+            L_new = value(p_new, r_new)
+            accept = L_new < L  # NaN compares False
+            Hn, gn = jax.lax.cond(accept, lambda: normal_eq(p_new, r_new), lambda: (Hm, g))
+            small = jnp.max(jnp.abs(delta)) < step_tol
+            p, L, r = (jnp.where(accept, p_new, p), jnp.where(accept, L_new, L),
+                       jnp.where(accept, r_new, r))
+            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
+            done = small | (lam > 1e6)
+            return it + 1, p, L, r, Hn, gn, lam, done
+
+        c = (jnp.int32(0), p, L0, r0, H0, g0, jnp.float32(1e-4), jnp.asarray(False))
+        k, p, L, _, _, _, _, _ = jax.lax.while_loop(cond, body, c)
+        return p, L, k, mf, L
 
     def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
         """Adam steps from p on one level; returns (best p, its loss, steps run)."""
-        mask_at, loss, vg = fn
+        mask_at, loss, vg, _ = fn
         mf = mask_at(basis @ p, margs, depth, vm_ref)
         decay = jnp.log(jnp.float32(cfg.lr_final)) / max(n_steps - 1, 1)
 
@@ -330,7 +446,8 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         p0 = basis.T @ xi_start  # the basis is orthonormal
         p, steps, frac0 = p0, jnp.int32(0), None
         for (rgb, depth), fn, (_, _, _, n_steps, lr_scale) in zip(images, fns, levels):
-            p, best_loss, k, mf, last = stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw)
+            p, best_loss, k, mf, last = (gn_stage if cfg.solver == "gn" else stage)(
+                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw)
             frac0 = mf.mean() if frac0 is None else frac0  # the first stage's pixels are chosen at p0
             steps = steps + k
         rgb, depth = images[-1]
@@ -445,7 +562,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
     s = cfg.coarse_downscale
     if cfg.coarse_iters > 0 and s > 1 and min(width, height) // s >= 32:  # smaller: too few pixels to steer
         stages.append((*_shrink(rgb, depth, K, s), cfg.coarse_iters, cfg.coarse_lr_scale))
-    stages.append((rgb, depth, K, width, height, cfg.iters, 1.0))
+    stages.append((rgb, depth, K, width, height, cfg.gn_iters if cfg.solver == "gn" else cfg.iters, 1.0))
     if _bucket(len(rows)) < gmap.capacity:
         params, active, _, _ = _gather_rows(gmap, None, rows)
     else:
