@@ -185,7 +185,7 @@ class TrackerConfig:
     prior_trans_floor: float = 1e-3
     prior_lateral_sigma: float | None = None
     solver: str = "adam"
-    gn_iters: int = 5
+    gn_iters: int = 10
     gn_fd_step: float = 1e-3
     gn_eps_depth: float = 1e-3
     gn_eps_color: float = 1e-2
@@ -197,9 +197,9 @@ class TrackerConfig:
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if self.gn_iters < 1 or not (self.gn_fd_step > 0 and self.gn_eps_depth > 0 and self.gn_eps_color > 0
-                                     and self.gn_step_tol >= 0):
-            raise ValueError("gn_iters >= 1, gn_fd_step > 0, gn_eps_depth > 0, gn_eps_color > 0 and "
-                             "gn_step_tol >= 0 are required")
+                                     and self.gn_step_tol >= 0 and self.gn_eps_rel >= 0):
+            raise ValueError("gn_iters >= 1, gn_fd_step > 0, gn_eps_depth > 0, gn_eps_color > 0, "
+                             "gn_eps_rel >= 0 and gn_step_tol >= 0 are required")
         if self.iters < 1:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
         if self.coarse_iters < 0 or self.coarse_downscale < 1 or self.patience < 0 or self.tol < 0:
@@ -289,9 +289,10 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             return rasterize(*margs, perturb_viewmat(vm_ref, xi), Kj, W, H, render_mode="RGB+D", validate=False,
                              differentiable=_TRACK_DIFF)
 
-        def mask_at(xi, margs, depth, vm_ref):
-            """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier."""
-            out = render(xi, margs, vm_ref)
+        def mask_at(xi, margs, depth, vm_ref, out=None):
+            """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier
+            (``out``: the render at xi when already made)."""
+            out = render(xi, margs, vm_ref) if out is None else out
             d_err = jnp.abs(out.depth[..., 0] - depth)
             m = (out.alpha[..., 0] > sil) & (depth > 0)
             if ok_k > 0:
@@ -307,10 +308,12 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             c_err = jnp.abs(out.image - rgb).sum(-1)
             return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n + xi @ pw @ xi
 
-        def residual(p, margs, rgb, depth, vm_ref, basis):
-            """(H, W, 4) rendered minus observed (depth m, then colour) at p."""
+        def residual(p, margs, rgb, depth, vm_ref, basis, with_mask=False):
+            """(H, W, 4) rendered minus observed (depth m, then colour) at p; with ``with_mask``
+            also the trusted pixels there (one render for both)."""
             out = render(basis @ p, margs, vm_ref)
-            return jnp.concatenate([out.depth - depth[..., None], out.image - rgb], -1)
+            r = jnp.concatenate([out.depth - depth[..., None], out.image - rgb], -1)
+            return (r, mask_at(None, margs, depth, vm_ref, out)) if with_mask else r
 
         return mask_at, loss, jax.value_and_grad(loss), residual
 
@@ -321,13 +324,12 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     eps_rel = cfg.gn_eps_rel
     refresh = cfg.gn_refresh
 
-    def _fixed_metric(p, n_iters, vg, args, Hm, mf):
-        """Levenberg-Marquardt steps with the metric ``Hm`` held fixed and the exact gradient of
-        the loss (the rasterizer's pose-only backward) at every step: one forward + backward per
-        step instead of k + 1 forwards, and the fixed point is the loss's own minimum whatever
-        the metric's error."""
+    def _fixed_metric(p, n_iters, vg, args, Hm, mf, L0, g0):
+        """Levenberg-Marquardt steps from p (loss L0, gradient g0) with the metric ``Hm`` held
+        fixed and the exact gradient of the loss (the rasterizer's pose-only backward) after
+        every accepted step: one forward + backward per step instead of k + 1 forwards, and the
+        fixed point is the loss's own minimum whatever the metric's error."""
         k_dim = p.shape[0]
-        L0, g0 = vg(p, *args)
 
         def cond(c):
             return (c[0] < n_iters) & ~c[-1]
@@ -358,7 +360,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         rasterizer has no forward mode); a rejected step raises the damping and reuses it."""
         mask_at, loss, vg, residual = fn
         k_dim = p.shape[0]
-        mf = mask_at(basis @ p, margs, depth, vm_ref)
+        r0, mf = residual(p, margs, rgb, depth, vm_ref, basis, with_mask=True)
         n = jnp.maximum(mf.sum(), 1.0)
         a = mf[..., None] * jnp.array([1.0, w_c, w_c, w_c], jnp.float32) / n  # (H, W, 4) L1 weights
         Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
@@ -377,12 +379,11 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             g = jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r)) + 2.0 * Pp @ p
             return Hm, g
 
-        r0 = residual(p, margs, rgb, depth, vm_ref, basis)
         L0 = value(p, r0)
         H0, g0 = normal_eq(p, r0)
 
-        if not refresh:
-            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), H0, mf)
+        if not refresh:  # the first step's gradient is the difference quotients'
+            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), H0, mf, L0, g0)
 
         def cond(c):
             it, _, _, _, _, _, _, done = c

@@ -175,3 +175,58 @@ def test_prior_sigma_follows_the_odometry_step():
             TrackerConfig(prior_weight=bad).validate()
     with pytest.raises(ValueError):
         TrackerConfig(coarse_iters=-1).validate()
+
+
+# --------------------------------------------------------------------------------------------
+# Levenberg-Marquardt solver (TrackerConfig.solver = "gn")
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("refresh", [False, True])
+def test_gn_tracking_recovers_a_perturbed_pose(tracking_map, refresh):
+    m, f = tracking_map
+    xi = jnp.array([0.01, -0.012, 0.008, 0.012, -0.01, 0.012])  # 2 cm and about 1 degree off
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), xi))
+    ang0, d0 = pose_distance(noisy, f.viewmat)
+    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="gn", gn_iters=10, gn_refresh=refresh)
+    ang, d = pose_distance(r.viewmat, f.viewmat)
+    assert r.status == "ok" and r.loss < r.loss0 and 1 <= r.steps <= 10
+    assert d < 0.005 and ang < np.radians(0.3), (d0, ang0, d, ang)
+    # it lands where 80 Adam steps do
+    ra = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="adam", iters=80)
+    assert pose_distance(r.viewmat, ra.viewmat)[1] < 0.003
+    assert r.loss <= 1.05 * ra.loss, (r.loss, ra.loss)
+
+
+def test_gn_planar_tracking_keeps_height_roll_and_pitch(tracking_map):
+    from splatsearch.slam import planar_basis
+
+    m, f = tracking_map
+    B = np.asarray(planar_basis(jnp.asarray(f.viewmat)))
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), jnp.asarray(B @ np.array([0.015, 0.012, -0.01]),
+                                                                             jnp.float32)))
+    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="gn", planar=True)
+    ang, d = pose_distance(r.viewmat, f.viewmat)
+    assert r.status == "ok" and d < 0.005 and ang < np.radians(0.3), (d, ang)
+    # the camera's height and its up axis are the prediction's
+    c = lambda vm: -vm[:3, :3].T @ vm[:3, 3]  # noqa: E731
+    assert abs(c(r.viewmat)[2] - c(noisy)[2]) < 1e-4
+    np.testing.assert_allclose(r.viewmat[:3, :3] @ [0, 0, 1], noisy[:3, :3] @ [0, 0, 1], atol=1e-4)
+
+
+def test_gn_prior_and_bad_frames(tracking_map):
+    m, f = tracking_map
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), jnp.array([0.0, 0.0, 0.0, 0.015, 0.0, 0.0])))
+    tight = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="gn", prior_sigma=(1e-4, 1e-4))
+    free = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="gn")
+    assert pose_distance(tight.viewmat, noisy)[1] < 0.002 < pose_distance(free.viewmat, noisy)[1]
+    bad = f.rgb.copy()
+    bad[10:20] = np.nan  # every loss NaN: no step is accepted, the frame is reported
+    r = track(m.map, bad, f.depth, noisy, m.K, m.W, m.H, solver="gn")
+    assert r.status == "diverged" and np.isfinite(r.viewmat).all()
+
+
+def test_bad_solver_config():
+    for bad in (dict(solver="newton"), dict(gn_iters=0), dict(gn_fd_step=0.0), dict(gn_eps_depth=-1.0),
+                dict(gn_eps_rel=-1.0)):
+        with pytest.raises(ValueError):
+            TrackerConfig(**bad).validate()
