@@ -1,7 +1,8 @@
 """Camera tracking against a Gaussian map, and the SLAM front end that tracks then maps.
 
 Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map frozen, the pose of
-the new frame is refined by Adam through the rasterizer's ``viewmat`` gradient. The loss is L1 on
+the new frame is refined through the rasterizer's ``viewmat`` gradient, by Adam (SplaTAM's) or by
+Levenberg-Marquardt (``TrackerConfig.solver``; see there). The loss is L1 on
 depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette > ``sil_thresh``)
 with valid observed depth, leaving out pixels whose depth error exceeds ``outlier_k`` times the
 median (depth edges, moving things); those pixels are chosen once per stage, at the pose the
@@ -147,6 +148,18 @@ class TrackerConfig:
     turns about the world's vertical axis (world z up): the update is restricted to those 3
     degrees of freedom, so height, roll and pitch keep the initial guess's values.
 
+    solver: "adam" (the steps above, ``iters`` of them) or "gn": Levenberg-Marquardt on the same
+    loss and trusted pixels, at most ``gn_iters`` steps per stage. Its metric is the Gauss-Newton
+    matrix of the L1 terms reweighted as in IRLS: the residuals' Jacobian w.r.t. the k pose
+    parameters from k forward-difference renders (step ``gn_fd_step`` rad / m), each pixel and
+    channel weighted by 1 / max(|r|, eps) with eps the larger of ``gn_eps_depth`` (m) /
+    ``gn_eps_color`` and ``gn_eps_rel`` x the channel's mean |r| (a floor that keeps nearly exact
+    pixels from dominating the metric). gn_refresh False (default): the metric is formed once at
+    the stage's start and each step then costs one forward + pose-only backward for the exact
+    gradient; True: Jacobian and gradient are re-formed from k + 1 renders after every accepted
+    step. A step that does not lower the loss is rejected and the damping raised; a stage ends
+    after ``gn_iters`` steps, a step below ``gn_step_tol``, or damping past 1e6.
+
     Odometry prior (used when :func:`track` gets ``prior_sigma``, which :class:`SLAM` passes
     when the robot's odometry is given): the loss adds ``prior_weight`` x (|w| / sigma_rot)^2 +
     (|t| / sigma_trans)^2 for the increment (w rad, t m) from the odometry's prediction, with
@@ -250,7 +263,8 @@ class TrackResult:
     """viewmat (4, 4) refined world-to-camera; loss (final best, at the tracking resolution) and
     loss0 (the same loss where the Adam steps start: the initial pose, or the RGB-D odometry's);
     valid_frac: trusted pixel fraction at the initial pose; status "ok", "diverged" or
-    "no_overlap"; steps: Adam steps run (all stages); seconds: wall time; cpu_seconds: process
+    "no_overlap"; steps: solver steps run (all stages; Adam steps, or Levenberg-Marquardt
+    steps including rejected ones); seconds: wall time; cpu_seconds: process
     CPU time (all threads), which on a shared machine shows the cost better than the wall
     time."""
 
@@ -272,7 +286,8 @@ _TRACK_DIFF = "viewmat"
 def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
-           cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol, cfg.gn_eps_rel, cfg.gn_refresh)
+           cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol,
+           cfg.gn_eps_rel, cfg.gn_refresh)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar
@@ -335,7 +350,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             return (c[0] < n_iters) & ~c[-1]
 
         def body(c):
-            it, p, L, g, lam, done = c
+            it, p, L, g, Hm, lam, done = c
             A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(k_dim, dtype=Hm.dtype)
             delta = -jnp.linalg.solve(A, jnp.where(jnp.isfinite(g), g, 0.0))
             delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
@@ -344,10 +359,10 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             small = jnp.max(jnp.abs(delta)) < step_tol
             p, L, g = (jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L), jnp.where(accept, g_new, g))
             lam = jnp.where(accept, lam * 0.3, lam * 10.0)
-            return it + 1, p, L, g, lam, small | (lam > 1e6)
+            return it + 1, p, L, g, Hm, lam, small | (lam > 1e6)
 
-        c = (jnp.int32(0), p, L0, g0, jnp.float32(1e-4), jnp.asarray(False))
-        k, p, L, _, _, _ = jax.lax.while_loop(cond, body, c)
+        c = (jnp.int32(0), p, L0, g0, Hm, jnp.float32(1e-4), jnp.asarray(False))
+        k, p, L, _, _, _, _ = jax.lax.while_loop(cond, body, c)
         return p, L, k, mf, L
 
     def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
