@@ -26,7 +26,7 @@ import time
 from splatsearch import datasets
 from splatsearch.map_job import MapJob, map_sequence
 from splatsearch.mapper import MapperConfig
-from splatsearch.slam import TrackerConfig
+from splatsearch.slam import SOLVERS, TrackerConfig
 
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
@@ -82,6 +82,11 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=100, help="simulator walk length (default 100)")
     p.add_argument("--seed", type=int, default=0, help="dev house seed (default 0; never >= 1000)")
     d = TrackerConfig()
+    p.add_argument("--track-solver", default=d.solver, choices=SOLVERS,
+                   help=f"tracking solver: adam (--track-iters steps) or gn (Levenberg-Marquardt, "
+                        f"--track-gn-iters steps; default {d.solver})")
+    p.add_argument("--track-gn-iters", type=int, default=d.gn_iters,
+                   help=f"most Levenberg-Marquardt steps per frame with --track-solver gn (default {d.gn_iters})")
     p.add_argument("--track-iters", type=int, default=d.iters,
                    help=f"most tracking Adam steps per frame (default {d.iters})")
     p.add_argument("--track-coarse-iters", type=int, default=d.coarse_iters,
@@ -111,7 +116,7 @@ def main(argv=None) -> int:
     tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry,
                          planar=a.planar, coarse_iters=a.track_coarse_iters, patience=a.track_patience,
                          prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
-                         prior_rot_sigma=a.prior_rot_sigma)
+                         prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters)
     try:
         tcfg.validate()
     except ValueError as e:

@@ -139,6 +139,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale,
                          rgbd_odometry=args.track_rgbd_odometry, planar=args.track_planar)
+    if args.track_solver is not None:
+        tcfg.solver = args.track_solver
+    if args.track_gn_iters is not None:
+        tcfg.gn_iters = args.track_gn_iters
     if args.track_coarse_iters is not None:
         tcfg.coarse_iters = args.track_coarse_iters
     if args.track_patience is not None:
@@ -153,6 +157,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
                                          ("--track-planar", args.track_planar),
                                          ("--pose-refine", args.pose_refine),
                                          ("--track-coarse-iters", args.track_coarse_iters is not None),
+                                         ("--track-solver", args.track_solver is not None),
+                                         ("--track-gn-iters", args.track_gn_iters is not None),
                                          ("--track-patience", args.track_patience is not None),
                                          ("--track-prior-weight", args.track_prior_weight is not None),
                                          ("--track-prior-lateral", args.track_prior_lateral is not None)) if on]
@@ -461,6 +467,12 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--track-iters", type=int, default=40,
                    help="most tracking Adam steps per frame at the tracking size, after the coarse ones (default 40; "
                         "the fast setting: 8 with --track-coarse-iters 30 --track-patience 5)")
+    m.add_argument("--track-solver", choices=("adam", "gn"), default=None,
+                   help="with --track: the pose solver: 'gn' (Levenberg-Marquardt on reweighted L1 residuals, "
+                        "at most --track-gn-iters steps) or 'adam' (SplaTAM's first-order steps, --track-iters; "
+                        "default: TrackerConfig's)")
+    m.add_argument("--track-gn-iters", type=positive_int, default=None,
+                   help="with --track-solver gn: most Levenberg-Marquardt steps per frame (default 5)")
     m.add_argument("--track-coarse-iters", type=int, default=None,
                    help="most tracking Adam steps first on images 4x smaller still "
                         "(0: none; default 0)")

@@ -1,7 +1,8 @@
 """Camera tracking against a Gaussian map, and the SLAM front end that tracks then maps.
 
 Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map frozen, the pose of
-the new frame is refined by Adam through the rasterizer's ``viewmat`` gradient. The loss is L1 on
+the new frame is refined through the rasterizer's ``viewmat`` gradient, by Adam (SplaTAM's) or by
+Levenberg-Marquardt (``TrackerConfig.solver``; see there). The loss is L1 on
 depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette > ``sil_thresh``)
 with valid observed depth, leaving out pixels whose depth error exceeds ``outlier_k`` times the
 median (depth edges, moving things); those pixels are chosen once per stage, at the pose the
@@ -113,6 +114,10 @@ def diagonal_precision(weight: float, sigma_rot: float, sigma_trans: float) -> n
     (rotation vector rad: ``sigma_rot``; translation m: ``sigma_trans``)."""
     return np.diag([weight / sigma_rot ** 2] * 3 + [weight / sigma_trans ** 2] * 3)
 
+#: tracking solvers: "adam" (first order, SplaTAM's) and "gn" (Levenberg-Marquardt on IRLS weights)
+SOLVERS = ("adam", "gn")
+
+
 @dataclass
 class TrackerConfig:
     """Tracking settings.
@@ -142,6 +147,18 @@ class TrackerConfig:
     ``max_trans``. planar: a ground robot's camera moves in the world's horizontal plane and
     turns about the world's vertical axis (world z up): the update is restricted to those 3
     degrees of freedom, so height, roll and pitch keep the initial guess's values.
+
+    solver: "adam" (the steps above, ``iters`` of them) or "gn": Levenberg-Marquardt on the same
+    loss and trusted pixels, at most ``gn_iters`` steps per stage. Its metric is the Gauss-Newton
+    matrix of the L1 terms reweighted as in IRLS: the residuals' Jacobian w.r.t. the k pose
+    parameters from k forward-difference renders (step ``gn_fd_step`` rad / m), each pixel and
+    channel weighted by 1 / max(|r|, eps) with eps the larger of ``gn_eps_depth`` (m) /
+    ``gn_eps_color`` and ``gn_eps_rel`` x the channel's mean |r| (a floor that keeps nearly exact
+    pixels from dominating the metric). gn_refresh False (default): the metric is formed once at
+    the stage's start and each step then costs one forward + pose-only backward for the exact
+    gradient; True: Jacobian and gradient are re-formed from k + 1 renders after every accepted
+    step. A step that does not lower the loss is rejected and the damping raised; a stage ends
+    after ``gn_iters`` steps, a step below ``gn_step_tol``, or damping past 1e6.
 
     Odometry prior (used when :func:`track` gets ``prior_sigma``, which :class:`SLAM` passes
     when the robot's odometry is given): the loss adds ``prior_weight`` x (|w| / sigma_rot)^2 +
@@ -180,8 +197,22 @@ class TrackerConfig:
     prior_trans_sigma: float = 0.05
     prior_trans_floor: float = 1e-3
     prior_lateral_sigma: float | None = None
+    solver: str = "adam"
+    gn_iters: int = 10
+    gn_fd_step: float = 1e-3
+    gn_eps_depth: float = 1e-3
+    gn_eps_color: float = 1e-2
+    gn_step_tol: float = 1e-5
+    gn_eps_rel: float = 2.0
+    gn_refresh: bool = False
 
     def validate(self) -> None:
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if self.gn_iters < 1 or not (self.gn_fd_step > 0 and self.gn_eps_depth > 0 and self.gn_eps_color > 0
+                                     and self.gn_step_tol >= 0 and self.gn_eps_rel >= 0):
+            raise ValueError("gn_iters >= 1, gn_fd_step > 0, gn_eps_depth > 0, gn_eps_color > 0, "
+                             "gn_eps_rel >= 0 and gn_step_tol >= 0 are required")
         if self.iters < 1:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
         if self.coarse_iters < 0 or self.coarse_downscale < 1 or self.patience < 0 or self.tol < 0:
@@ -232,7 +263,8 @@ class TrackResult:
     """viewmat (4, 4) refined world-to-camera; loss (final best, at the tracking resolution) and
     loss0 (the same loss where the Adam steps start: the initial pose, or the RGB-D odometry's);
     valid_frac: trusted pixel fraction at the initial pose; status "ok", "diverged" or
-    "no_overlap"; steps: Adam steps run (all stages); seconds: wall time; cpu_seconds: process
+    "no_overlap"; steps: solver steps run (all stages; Adam steps, or Levenberg-Marquardt
+    steps including rejected ones); seconds: wall time; cpu_seconds: process
     CPU time (all threads), which on a shared machine shows the cost better than the wall
     time."""
 
@@ -254,7 +286,8 @@ _TRACK_DIFF = "viewmat"
 def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
-           cfg.tol, cfg.patience)
+           cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol,
+           cfg.gn_eps_rel, cfg.gn_refresh)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar
@@ -271,9 +304,10 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             return rasterize(*margs, perturb_viewmat(vm_ref, xi), Kj, W, H, render_mode="RGB+D", validate=False,
                              differentiable=_TRACK_DIFF)
 
-        def mask_at(xi, margs, depth, vm_ref):
-            """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier."""
-            out = render(xi, margs, vm_ref)
+        def mask_at(xi, margs, depth, vm_ref, out=None):
+            """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier
+            (``out``: the render at xi when already made)."""
+            out = render(xi, margs, vm_ref) if out is None else out
             d_err = jnp.abs(out.depth[..., 0] - depth)
             m = (out.alpha[..., 0] > sil) & (depth > 0)
             if ok_k > 0:
@@ -289,13 +323,111 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             c_err = jnp.abs(out.image - rgb).sum(-1)
             return (jnp.sum(d_err * mf) + w_c * jnp.sum(c_err * mf)) / n + xi @ pw @ xi
 
-        return mask_at, loss, jax.value_and_grad(loss)
+        def residual(p, margs, rgb, depth, vm_ref, basis, with_mask=False):
+            """(H, W, 4) rendered minus observed (depth m, then colour) at p; with ``with_mask``
+            also the trusted pixels there (one render for both)."""
+            out = render(basis @ p, margs, vm_ref)
+            r = jnp.concatenate([out.depth - depth[..., None], out.image - rgb], -1)
+            return (r, mask_at(None, margs, depth, vm_ref, out)) if with_mask else r
+
+        return mask_at, loss, jax.value_and_grad(loss), residual
 
     fns = [make_level(Kb, W, H) for Kb, W, H, _, _ in levels]
+    h_fd = cfg.gn_fd_step
+    eps = jnp.array([cfg.gn_eps_depth] + [cfg.gn_eps_color] * 3, jnp.float32)
+    step_tol = cfg.gn_step_tol
+    eps_rel = cfg.gn_eps_rel
+    refresh = cfg.gn_refresh
+
+    def _fixed_metric(p, n_iters, vg, args, Hm, mf, L0, g0):
+        """Levenberg-Marquardt steps from p (loss L0, gradient g0) with the metric ``Hm`` held
+        fixed and the exact gradient of the loss (the rasterizer's pose-only backward) after
+        every accepted step: one forward + backward per step instead of k + 1 forwards, and the
+        fixed point is the loss's own minimum whatever the metric's error."""
+        k_dim = p.shape[0]
+
+        def cond(c):
+            return (c[0] < n_iters) & ~c[-1]
+
+        def body(c):
+            it, p, L, g, Hm, lam, done = c
+            A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(k_dim, dtype=Hm.dtype)
+            delta = -jnp.linalg.solve(A, jnp.where(jnp.isfinite(g), g, 0.0))
+            delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
+            L_new, g_new = vg(p + delta, *args)
+            accept = L_new < L
+            small = jnp.max(jnp.abs(delta)) < step_tol
+            p, L, g = (jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L), jnp.where(accept, g_new, g))
+            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
+            return it + 1, p, L, g, Hm, lam, small | (lam > 1e6)
+
+        c = (jnp.int32(0), p, L0, g0, Hm, jnp.float32(1e-4), jnp.asarray(False))
+        k, p, L, _, _, _, _ = jax.lax.while_loop(cond, body, c)
+        return p, L, k, mf, L
+
+    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
+        """Levenberg-Marquardt from p on one level, same loss and trusted pixels as the Adam stage.
+
+        The L1 terms are reweighted (IRLS): at residual r the quadratic model of |r| has curvature
+        1 / max(|r|, eps) and slope sign(r), which majorises |r|, so a step that lowers the model
+        lowers the loss while the linearisation holds. The Jacobian of the rendered depth and
+        colour w.r.t. the k pose parameters comes from k forward-difference renders (the
+        rasterizer has no forward mode); a rejected step raises the damping and reuses it."""
+        mask_at, loss, vg, residual = fn
+        k_dim = p.shape[0]
+        r0, mf = residual(p, margs, rgb, depth, vm_ref, basis, with_mask=True)
+        n = jnp.maximum(mf.sum(), 1.0)
+        a = mf[..., None] * jnp.array([1.0, w_c, w_c, w_c], jnp.float32) / n  # (H, W, 4) L1 weights
+        Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
+
+        def value(p, r):
+            return jnp.sum(a * jnp.abs(r)) + p @ Pp @ p
+
+        def normal_eq(p, r):
+            cols = [(residual(p + h_fd * jnp.eye(k_dim, dtype=p.dtype)[j], margs, rgb, depth, vm_ref, basis) - r)
+                    / h_fd for j in range(k_dim)]
+            J = jnp.stack(cols, -1)  # (H, W, 4, k)
+            ar = jnp.abs(r)
+            scale = jnp.sum(ar * mf[..., None], (0, 1)) / n  # mean |residual| per channel
+            w = a / jnp.maximum(ar, jnp.maximum(eps, eps_rel * scale))
+            Hm = jnp.einsum("hwck,hwc,hwcl->kl", J, w, J) + 2.0 * Pp
+            g = jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r)) + 2.0 * Pp @ p
+            return Hm, g
+
+        L0 = value(p, r0)
+        H0, g0 = normal_eq(p, r0)
+
+        if not refresh:  # the first step's gradient is the difference quotients'
+            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), H0, mf, L0, g0)
+
+        def cond(c):
+            it, _, _, _, _, _, _, done = c
+            return (it < n_iters) & ~done
+
+        def body(c):
+            it, p, L, r, Hm, g, lam, done = c
+            A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(k_dim, dtype=Hm.dtype)
+            delta = -jnp.linalg.solve(A, g)
+            delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
+            p_new = p + delta
+            r_new = residual(p_new, margs, rgb, depth, vm_ref, basis)
+            L_new = value(p_new, r_new)
+            accept = L_new < L  # NaN compares False
+            Hn, gn = jax.lax.cond(accept, lambda: normal_eq(p_new, r_new), lambda: (Hm, g))
+            small = jnp.max(jnp.abs(delta)) < step_tol
+            p, L, r = (jnp.where(accept, p_new, p), jnp.where(accept, L_new, L),
+                       jnp.where(accept, r_new, r))
+            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
+            done = small | (lam > 1e6)
+            return it + 1, p, L, r, Hn, gn, lam, done
+
+        c = (jnp.int32(0), p, L0, r0, H0, g0, jnp.float32(1e-4), jnp.asarray(False))
+        k, p, L, _, _, _, _, _ = jax.lax.while_loop(cond, body, c)
+        return p, L, k, mf, L
 
     def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
         """Adam steps from p on one level; returns (best p, its loss, steps run)."""
-        mask_at, loss, vg = fn
+        mask_at, loss, vg, _ = fn
         mf = mask_at(basis @ p, margs, depth, vm_ref)
         decay = jnp.log(jnp.float32(cfg.lr_final)) / max(n_steps - 1, 1)
 
@@ -330,7 +462,8 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         p0 = basis.T @ xi_start  # the basis is orthonormal
         p, steps, frac0 = p0, jnp.int32(0), None
         for (rgb, depth), fn, (_, _, _, n_steps, lr_scale) in zip(images, fns, levels):
-            p, best_loss, k, mf, last = stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw)
+            p, best_loss, k, mf, last = (gn_stage if cfg.solver == "gn" else stage)(
+                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw)
             frac0 = mf.mean() if frac0 is None else frac0  # the first stage's pixels are chosen at p0
             steps = steps + k
         rgb, depth = images[-1]
@@ -445,7 +578,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
     s = cfg.coarse_downscale
     if cfg.coarse_iters > 0 and s > 1 and min(width, height) // s >= 32:  # smaller: too few pixels to steer
         stages.append((*_shrink(rgb, depth, K, s), cfg.coarse_iters, cfg.coarse_lr_scale))
-    stages.append((rgb, depth, K, width, height, cfg.iters, 1.0))
+    stages.append((rgb, depth, K, width, height, cfg.gn_iters if cfg.solver == "gn" else cfg.iters, 1.0))
     if _bucket(len(rows)) < gmap.capacity:
         params, active, _, _ = _gather_rows(gmap, None, rows)
     else:

@@ -34,7 +34,7 @@ def test_planar_tracking_recovers_an_in_plane_offset(tracking_map):
     B = planar_basis(jnp.asarray(f.viewmat))
     noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), B @ jnp.array([0.015, 0.015, -0.012])))
     ang0, d0 = pose_distance(noisy, f.viewmat)
-    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, iters=80, planar=True)
+    r = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="adam", iters=80, planar=True)
     ang, d = pose_distance(r.viewmat, f.viewmat)
     assert r.status == "ok" and r.loss < r.loss0
     assert d < 0.005 and ang < np.radians(0.3), (d0, ang0, d, ang)
