@@ -82,6 +82,7 @@ def rerender_file(d: dict, *, source: str = "map", margin: float | None = None, 
     alpha_tau, fill = float(agent.inpaint_tau), 0.5
     inp = OpenCVInpainter()
     out = {k: [] for k in ("rendered", "alpha", "holes", "background", "opencv", "viewmats", "view_run")}
+    build_wall, build_cpu = [], []
     for r in range(len(d["run_entry"])):
         lo, hi = region_box(d["run_bbox_min"][r], d["run_bbox_max"][r], lm_cfg.margin)
         box = crop_box_for(lo, hi, crop_margin, floor_z=None)
@@ -90,7 +91,10 @@ def rerender_file(d: dict, *, source: str = "map", margin: float | None = None, 
             sel = d[f"{pre}_run"] == r
             obs = [Frame(rgb.astype(np.float32) / 255.0, dep.astype(np.float32) / 1000.0, vm.astype(np.float32))
                    for rgb, dep, vm in zip(d[f"{pre}_rgb"][sel], d[f"{pre}_depth"][sel], d[f"{pre}_viewmat"][sel])]
+            t0, c0 = time.perf_counter(), time.process_time()
             gmap = build_local_map(obs, K, W, H, lo, hi, lm_cfg, seed=agent.seed)
+            build_wall.append(time.perf_counter() - t0)
+            build_cpu.append(time.process_time() - c0)
             rgb, alpha = render_novel_views(gmap, vms, K, W, H, crop_box=box)
             rgb, alpha = np.asarray(rgb, np.float32), np.asarray(alpha, np.float32)
         else:
@@ -116,6 +120,10 @@ def rerender_file(d: dict, *, source: str = "map", margin: float | None = None, 
     for k, v in d.items():
         if k.startswith("run_") or k in ("goal", "K", "width", "height"):
             res[k] = v
+    if build_wall:
+        # wall seconds depend on the machine's load; process CPU seconds less so
+        res["run_build_s"] = np.asarray(build_wall, np.float64)
+        res["run_build_cpu_s"] = np.asarray(build_cpu, np.float64)
     res["episode"] = np.asarray(json.dumps(d["episode"]))
     meta = dict(d["meta"])
     meta["rerender"] = {"source": source, "frames": frames, "crop_margin": crop_margin, "local_map": {k: getattr(lm_cfg, k) for k in fields}}
@@ -189,8 +197,12 @@ def main(argv=None) -> int:
         buf = io.BytesIO()
         np.savez_compressed(buf, **res)
         atomic_write_bytes(path, buf.getvalue())
-        print(json.dumps({"file": os.path.basename(f), "runs": int(len(d["run_entry"])),
-                          "s": round(time.perf_counter() - t0, 1), "load1": round(os.getloadavg()[0], 2)}), flush=True)
+        rec = {"file": os.path.basename(f), "runs": int(len(d["run_entry"])),
+               "s": round(time.perf_counter() - t0, 1), "load1": round(os.getloadavg()[0], 2)}
+        if "run_build_s" in res:
+            rec["build_s"] = round(float(res["run_build_s"].sum()), 1)
+            rec["build_cpu_s"] = round(float(res["run_build_cpu_s"].sum()), 1)
+        print(json.dumps(rec), flush=True)
     return 0
 
 

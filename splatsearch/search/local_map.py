@@ -34,7 +34,8 @@ class LocalMapConfig:
         iters_per_frame: Adam steps when each observation is added; refine_iters: steps over all
             of them at the end (the Gaussians start with their pixels' colours and depths, so few
             steps are needed; measurements in ``docs/results.md``). stride: densify stride in
-            pixels.
+            pixels (1: a Gaussian per observed pixel; the NVSM's matches come from the covered
+            part of the render, which a coarser stride blurs).
         capacity: initial Gaussian capacity (grows by doubling).
         min_separation: metres; an observation closer than this to a kept one (camera centres)
             with a heading within 20 degrees replaces it instead of adding a viewpoint.
@@ -45,8 +46,8 @@ class LocalMapConfig:
     margin: float = 3.0
     max_frames: int = 5
     iters_per_frame: int = 4
-    refine_iters: int = 8
-    stride: int = 2
+    refine_iters: int = 16
+    stride: int = 1
     capacity: int = 16384
     min_separation: float = 0.3
     surface_init: bool = True
