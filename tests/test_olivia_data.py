@@ -283,3 +283,51 @@ def test_free_space_sees_the_passage_width():
     assert fn[1] < fw[1]
     g = features.goal_features(narrow.global_path(), narrow.goal, pose, narrow.field())
     assert g.shape == (features.GOAL_DIM,) and np.allclose(g[5:], fn)
+
+
+def test_headon_training_doorways_cover_the_width_range_and_avoid_held_out_seeds():
+    from splatsearch.social.convoi.scenario_names import DOOR_TRAIN_SEEDS, LLU_ADAPT_SEEDS, LLU_TEST_SEEDS
+    from splatsearch.social.convoi.scenarios import GEOMETRY
+    from splatsearch.social.olivia.dataset import HEADON_DELAY, HEADON_DOOR_SEEDS, build_dataset, headon_doorway
+    from splatsearch.social.olivia.train import TrainConfig
+
+    tc = TrainConfig()
+    assert tuple(tc.headon_door_seeds) == HEADON_DOOR_SEEDS and len(HEADON_DOOR_SEEDS) >= 10
+    held = set(LLU_ADAPT_SEEDS) | set(LLU_TEST_SEEDS)
+    assert not held & set(HEADON_DOOR_SEEDS) and not set(DOOR_TRAIN_SEEDS) & set(HEADON_DOOR_SEEDS)
+    default, lo, hi = GEOMETRY["doorway"]["door_width"]
+    scenes = [headon_doorway(s) for s in HEADON_DOOR_SEEDS]
+    widths = np.array([s._cache["geometry"]["door_width"] for s in scenes])
+    delays = np.array([s._cache["geometry"]["headon_delay"] for s in scenes])
+    assert widths.min() >= lo and widths.max() <= hi and widths.min() < default < widths.max()
+    assert np.all((delays >= HEADON_DELAY[0]) & (delays <= HEADON_DELAY[1]))
+    for s, w in zip(HEADON_DOOR_SEEDS, widths):
+        plain = make_scenario("doorway", s, door_width=float(w))
+        h = headon_doorway(s)
+        # same walls and goals; only the person starts further back along its way to the door
+        np.testing.assert_array_equal(np.asarray(h.capsules), np.asarray(plain.capsules))
+        np.testing.assert_array_equal(np.asarray(h.peds.goals), np.asarray(plain.peds.goals))
+        p0, p1, g = np.asarray(plain.peds.pos[0]), np.asarray(h.peds.pos[0]), np.asarray(plain.peds.goals[0, 0])
+        back = np.linalg.norm(p1 - g) - np.linalg.norm(p0 - g)
+        assert back == pytest.approx(float(plain.peds.v0[0]) * h._cache["geometry"]["headon_delay"], abs=1e-4)
+    with pytest.raises(ValueError, match="delay"):
+        headon_doorway(220, delay=-1.0)
+    with pytest.raises(ValueError, match="doorways only"):
+        build_dataset(("hallway",), (0,), headon=True)
+
+
+@pytest.mark.slow
+def test_reference_walker_steps_aside_on_a_headon_training_doorway():
+    from splatsearch.social.convoi.runner import REFERENCE, run_episode
+    from splatsearch.social.olivia.dataset import headon_doorway
+
+    scn = headon_doorway(210, delay=1.4)
+    res = run_episode(scn, REFERENCE)
+    xy = np.asarray(res.robot)[:, :2]
+    before_door = (xy[:, 0] > 1.0) & (xy[:, 0] < 5.0)
+    assert res.reached
+    # it yields: a sidestep of more than 1 m to its right before the door, then through the door
+    assert (xy[before_door, 1] - scn.start[1]).min() < -1.0
+    plain = run_episode(make_scenario("doorway", 210, door_width=scn._cache["geometry"]["door_width"]), REFERENCE)
+    pxy = np.asarray(plain.robot)[:, :2]
+    assert (pxy[(pxy[:, 0] > 1.0) & (pxy[:, 0] < 5.0), 1] - scn.start[1]).min() > -0.5

@@ -148,24 +148,64 @@ def samples_from_episode(scn, res, *, every: int = 4, augment: int = 1, rng: np.
                    np.full(n, scn.seed, np.int32), np.asarray([r[8] for r in recs], np.int32))
 
 
+#: training doorways where the person comes through the door late, so it meets the robot head-on
+#: just past the door (:func:`headon_doorway`); outside the held-out doorway's adaptation seeds
+#: (500-519) and test seeds (1000+)
+HEADON_DOOR_SEEDS = tuple(range(220, 232))
+#: how late (s) the person of a head-on training doorway starts, drawn uniformly: over 1.1-1.7 s
+#: the walker stepped 1.2-1.6 m aside on 4 of 5 doorway scenes tried (seeds 210-214), against
+#: 0.5-0.9 s, where it mostly passed the person on its left without stopping
+HEADON_DELAY = (1.1, 1.7)
+
+
+def headon_doorway(seed: int, delay: float | None = None):
+    """A training doorway (door width from :func:`~splatsearch.social.convoi.scenarios.training_geometry`)
+    whose person starts ``delay`` s of walking further back (default: drawn from
+    :data:`HEADON_DELAY` by a stream of ``seed``'s own), so it comes through the door as the
+    robot arrives and walks at it head-on: the situation where the reference steps about 1.3 m
+    aside and waits, which plain doorway scenes seldom give. Returns a
+    :class:`~splatsearch.social.convoi.scenarios.Scenario` named "doorway" with seed ``seed``."""
+    import dataclasses
+
+    from ..convoi.scenarios import make_scenario, training_geometry
+
+    if delay is None:
+        delay = float(np.random.default_rng([int(seed), 91]).uniform(*HEADON_DELAY))
+    if not np.isfinite(delay) or delay < 0:
+        raise ValueError(f"delay must be a finite number of seconds >= 0, got {delay!r}")
+    scn = make_scenario("doorway", seed, **training_geometry("doorway", seed))
+    peds = scn.peds
+    pos = np.asarray(peds.pos).copy()
+    d = np.asarray(peds.goals)[0, 0] - pos[0]
+    pos[0] -= d / np.linalg.norm(d) * float(peds.v0[0]) * delay
+    geo = dict(scn._cache["geometry"]) | {"headon_delay": float(delay)}
+    return dataclasses.replace(scn, peds=peds._replace(pos=jnp.asarray(pos, peds.pos.dtype)), _cache={"geometry": geo})
+
+
 def build_dataset(scenarios: Sequence[str], seeds: Sequence[int], *, every: int = 4, augment: int = 1,
                   progress=None, expert_cache: dict | None = None, reference: str | None = None,
-                  vary_geometry: bool = False) -> Samples:
+                  vary_geometry: bool = False, headon: bool = False) -> Samples:
     """Samples from the reference episodes of every (scenario, seed). ``progress(i, n, label)``
     is called after each episode; ``expert_cache`` (dict) keeps the episodes for reuse;
     ``reference``: the planner kind imitated (default :data:`~splatsearch.social.convoi.runner.REFERENCE`,
     the human-like walker); ``vary_geometry``: each scene's door / corridor width is drawn from
-    the training ranges (:func:`~splatsearch.social.convoi.scenarios.training_geometry`)."""
+    the training ranges (:func:`~splatsearch.social.convoi.scenarios.training_geometry`);
+    ``headon``: doorway scenes only, each a :func:`headon_doorway` (implies sampled widths)."""
     from ..convoi.runner import REFERENCE, run_episode
     from ..convoi.scenarios import make_scenario, training_geometry
 
     reference = reference or REFERENCE
 
+    if headon and set(scenarios) != {"doorway"}:
+        raise ValueError(f"headon scenes are doorways only, got {sorted(set(scenarios))}")
     parts = []
     jobs = [(s, int(k)) for s in scenarios for k in seeds]
     for i, (name, seed) in enumerate(jobs):
-        scn = make_scenario(name, seed, **(training_geometry(name, seed) if vary_geometry else {}))
-        key = (name, seed, reference, vary_geometry)
+        if headon:
+            scn = headon_doorway(seed)
+        else:
+            scn = make_scenario(name, seed, **(training_geometry(name, seed) if vary_geometry else {}))
+        key = (name, seed, reference, vary_geometry, headon)
         res = expert_cache.get(key) if expert_cache is not None else None
         if res is None:
             res = run_episode(scn, reference)

@@ -52,7 +52,7 @@ from .planner import (
 )
 from .captions import LONG_LEN, SHORT_LEN, TemplateCaptioner, with_action
 from .baseline_cache import BaselineCache
-from .dataset import Samples, build_dataset
+from .dataset import HEADON_DOOR_SEEDS, Samples, build_dataset
 from .features import action_of
 from ..convoi.runner import REFERENCE
 from ..convoi.scenario_names import DOOR_TRAIN_SEEDS, LLU_ADAPT_SEEDS, LLU_TEST_SEEDS
@@ -315,6 +315,7 @@ class TrainConfig:
     db_size: int = 1000
     seed: int = 0
     door_seeds: tuple = DOOR_TRAIN_SEEDS
+    headon_door_seeds: tuple = HEADON_DOOR_SEEDS
     vary_geometry: bool = True
 
 
@@ -423,7 +424,7 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
         train, val = Samples.load(data_path), Samples.load(val_path)
         log(f"data: reused {len(train)} train / {len(val)} val samples from {out_dir}")
     else:
-        n_jobs = len(tc.scenarios) * (len(tc.train_seeds) + len(tc.val_seeds)) + len(tc.door_seeds)
+        n_jobs = len(tc.scenarios) * (len(tc.train_seeds) + len(tc.val_seeds)) + len(tc.door_seeds) + len(tc.headon_door_seeds)
         tid = task("expert episodes + renders", n_jobs)
         done = [0]
 
@@ -436,6 +437,9 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
         if tc.door_seeds:
             # doors of sampled widths (1.02-1.6 m, the held-out doorway's 1.1 m inside), never its seeds
             train = Samples.concat([train, build_dataset(("doorway",), tc.door_seeds, **kw)])
+        if tc.headon_door_seeds:
+            # a person meeting the robot head-on just past the door: the walker steps aside and waits
+            train = Samples.concat([train, build_dataset(("doorway",), tc.headon_door_seeds, headon=True, **kw)])
         val = build_dataset(tc.scenarios, tc.val_seeds, **kw)
         train.save(data_path)
         val.save(val_path)
