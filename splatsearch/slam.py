@@ -339,21 +339,23 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     eps_rel = cfg.gn_eps_rel
     refresh = cfg.gn_refresh
 
+    def _lm_delta(Hm, g, lam):
+        """The damped step -(Hm + lam diag(Hm))^-1 g; a non-finite component becomes 0."""
+        A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(Hm.shape[0], dtype=Hm.dtype)
+        delta = -jnp.linalg.solve(A, g)
+        return jnp.where(jnp.isfinite(delta), delta, 0.0)
+
     def _fixed_metric(p, n_iters, vg, args, Hm, mf, L0, g0):
         """Levenberg-Marquardt steps from p (loss L0, gradient g0) with the metric ``Hm`` held
         fixed and the exact gradient of the loss (the rasterizer's pose-only backward) after
         every accepted step: one forward + backward per step instead of k + 1 forwards, and the
         fixed point is the loss's own minimum whatever the metric's error."""
-        k_dim = p.shape[0]
-
         def cond(c):
             return (c[0] < n_iters) & ~c[-1]
 
         def body(c):
             it, p, L, g, Hm, lam, done = c
-            A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(k_dim, dtype=Hm.dtype)
-            delta = -jnp.linalg.solve(A, jnp.where(jnp.isfinite(g), g, 0.0))
-            delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
+            delta = _lm_delta(Hm, jnp.where(jnp.isfinite(g), g, 0.0), lam)
             L_new, g_new = vg(p + delta, *args)
             accept = L_new < L
             small = jnp.max(jnp.abs(delta)) < step_tol
@@ -406,9 +408,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
 
         def body(c):
             it, p, L, r, Hm, g, lam, done = c
-            A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(k_dim, dtype=Hm.dtype)
-            delta = -jnp.linalg.solve(A, g)
-            delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
+            delta = _lm_delta(Hm, g, lam)
             p_new = p + delta
             r_new = residual(p_new, margs, rgb, depth, vm_ref, basis)
             L_new = value(p_new, r_new)
