@@ -168,6 +168,7 @@ def test_evaluate_interrupt_and_resume_in_process(tmp_path):
 
 
 @needs_ray
+@pytest.mark.slow  # starts local workers and a Ray cluster twice (about 25 s on 2 cores); the executor tests above cover Ray by default
 def test_ray_and_local_same_outcomes_and_resume(ray_cluster, tmp_path):
     """Two short episodes give the same per-episode outcomes on both backends (2 workers each);
     a Ray run interrupted after its first episode and resumed on Ray loses nothing."""

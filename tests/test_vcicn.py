@@ -130,10 +130,20 @@ def test_tiny_training_lowers_validation_loss_and_resumes(tmp_path):
     VCICNInpainter(str(tmp_path / "w.npz"))  # the exported file loads with its provenance check
 
 
-def test_one_step_training_runs_and_bad_grad_loss_is_refused(tmp_path, capsys):
-    """A 1-step run still has a learning-rate schedule (the warm-up is shorter than the run); a
-    negative or non-finite --grad-loss is refused by the parser with a clear message."""
+def test_bad_grad_loss_is_refused(tmp_path, capsys):
+    """A negative or non-finite --grad-loss is refused by the parser with a clear message."""
     from splatsearch.cli import main
+
+    for bad in ("-1", "nan"):
+        with pytest.raises(SystemExit) as e:
+            main(["vcicn", "train", "--data", str(tmp_path), "--out", str(tmp_path / "r2"), "--grad-loss", bad])
+        assert e.value.code == 2
+        assert "--grad-loss" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # compiles a second training step (about 25 s on 2 cores)
+def test_one_step_training_runs(tmp_path):
+    """A 1-step run still has a learning-rate schedule (the warm-up is shorter than the run)."""
     from splatsearch.vcicn.train import TrainConfig, train
 
     data = tmp_path / "data"
@@ -141,20 +151,13 @@ def test_one_step_training_runs_and_bad_grad_loss_is_refused(tmp_path, capsys):
     _synthetic_shards(str(data), [0, 9])
     cfg = TrainConfig(steps=1, batch=1, width=16, height=16, features=8, eval_every=1)
     assert train(str(data), str(tmp_path / "run"), cfg, fresh=True, progress=False)["steps"] == 1
-    for bad in ("-1", "nan"):
-        with pytest.raises(SystemExit) as e:
-            main(["vcicn", "train", "--data", str(data), "--out", str(tmp_path / "r2"), "--grad-loss", bad])
-        assert e.value.code == 2
-        assert "--grad-loss" in capsys.readouterr().err
 
 
-def test_warm_start_across_resolutions_and_gradient_loss(tmp_path):
+@pytest.mark.slow  # compiles the model at a second resolution (about 25 s on 2 cores)
+def test_warm_start_across_resolutions(tmp_path):
     """Weights of one resolution start a run at another: the convolutions are copied, the
-    bottleneck's position embedding is resized; another U-Net width is refused. The gradient
-    term of the loss is zero for a perfect completion and grows with a blurred one."""
-    import jax
-
-    from splatsearch.search.completion import _flatten, loss_fn
+    bottleneck's position embedding is resized; another U-Net width is refused."""
+    from splatsearch.search.completion import _flatten
     from splatsearch.vcicn.train import warm_start
 
     small = VCICNConfig(width=16, height=16, features=8, heads=2, blocks=1)
@@ -175,6 +178,13 @@ def test_warm_start_across_resolutions_and_gradient_loss(tmp_path):
     assert out.shape == (1, 2, 24, 32, 3)
     with pytest.raises(ValueError, match="architecture"):
         warm_start({}, p, VCICNConfig(width=16, height=16, features=16, heads=2, blocks=1))
+
+
+def test_gradient_loss_term():
+    """The gradient term of the loss is zero for a perfect completion and grows with a blurred one."""
+    import jax
+
+    from splatsearch.search.completion import loss_fn
 
     rng = np.random.default_rng(0)
     gt = rng.random((1, 2, 16, 16, 3)).astype(np.float32)
