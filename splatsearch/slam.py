@@ -345,16 +345,25 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         delta = -jnp.linalg.solve(A, g)
         return jnp.where(jnp.isfinite(delta), delta, 0.0)
 
-    def _fixed_metric(p, n_iters, vg, args, Hm, mf, L0, g0):
-        """Levenberg-Marquardt steps from p (loss L0, gradient g0) with the metric ``Hm`` held
-        fixed and the exact gradient of the loss (the rasterizer's pose-only backward) after
+    def _fixed_metric(p, n_iters, vg, args, Hd, Pp, mf, L0, g0):
+        """Levenberg-Marquardt steps from p (loss L0, gradient g0) with the data metric ``Hd``
+        formed once and the exact gradient of the loss (the rasterizer's pose-only backward) after
         every accepted step: one forward + backward per step instead of k + 1 forwards, and the
-        fixed point is the loss's own minimum whatever the metric's error."""
+        fixed point is the loss's own minimum whatever the metric's error.
+
+        The IRLS weights are about 1 / (``gn_eps_rel`` x the mean |residual|) for most pixels, so
+        the data metric grows as the data loss falls: ``Hd`` is scaled by the data loss where it
+        was formed over the current one (without this, a start far from the minimum leaves a
+        metric several times too flat near it, and steps overshoot and are rejected)."""
+        Ld0 = jnp.maximum(L0 - p @ Pp @ p, 1e-12)
+
         def cond(c):
             return (c[0] < n_iters) & ~c[-1]
 
         def body(c):
-            it, p, L, g, Hm, lam, done = c
+            it, p, L, g, _, lam, done = c
+            Ld = jnp.maximum(L - p @ Pp @ p, 1e-12)
+            Hm = Hd * jnp.clip(Ld0 / Ld, 1.0, 100.0) + 2.0 * Pp
             delta = _lm_delta(Hm, jnp.where(jnp.isfinite(g), g, 0.0), lam)
             L_new, g_new = vg(p + delta, *args)
             accept = L_new < L
@@ -363,7 +372,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             lam = jnp.where(accept, lam * 0.3, lam * 10.0)
             return it + 1, p, L, g, Hm, lam, small | (lam > 1e6)
 
-        c = (jnp.int32(0), p, L0, g0, Hm, jnp.float32(1e-4), jnp.asarray(False))
+        c = (jnp.int32(0), p, L0, g0, Hd, jnp.float32(1e-4), jnp.asarray(False))
         k, p, L, _, _, _, _ = jax.lax.while_loop(cond, body, c)
         return p, L, k, mf, L
 
@@ -392,15 +401,16 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             ar = jnp.abs(r)
             scale = jnp.sum(ar * mf[..., None], (0, 1)) / n  # mean |residual| per channel
             w = a / jnp.maximum(ar, jnp.maximum(eps, eps_rel * scale))
-            Hm = jnp.einsum("hwck,hwc,hwcl->kl", J, w, J) + 2.0 * Pp
+            Hd = jnp.einsum("hwck,hwc,hwcl->kl", J, w, J)
             g = jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r)) + 2.0 * Pp @ p
-            return Hm, g
+            return Hd, g
 
         L0 = value(p, r0)
-        H0, g0 = normal_eq(p, r0)
+        Hd0, g0 = normal_eq(p, r0)
 
         if not refresh:  # the first step's gradient is the difference quotients'
-            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), H0, mf, L0, g0)
+            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), Hd0, Pp, mf, L0, g0)
+        H0 = Hd0 + 2.0 * Pp
 
         def cond(c):
             it, _, _, _, _, _, _, done = c
@@ -413,7 +423,8 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             r_new = residual(p_new, margs, rgb, depth, vm_ref, basis)
             L_new = value(p_new, r_new)
             accept = L_new < L  # NaN compares False
-            Hn, gn = jax.lax.cond(accept, lambda: normal_eq(p_new, r_new), lambda: (Hm, g))
+            Hn, gn = jax.lax.cond(accept, lambda: normal_eq(p_new, r_new), lambda: (Hm - 2.0 * Pp, g))
+            Hn = Hn + 2.0 * Pp
             small = jnp.max(jnp.abs(delta)) < step_tol
             p, L, r = (jnp.where(accept, p_new, p), jnp.where(accept, L_new, L),
                        jnp.where(accept, r_new, r))

@@ -184,7 +184,6 @@ def test_prior_sigma_follows_the_odometry_step():
 # Levenberg-Marquardt solver (TrackerConfig.solver = "gn")
 # --------------------------------------------------------------------------------------------
 
-@pytest.mark.xfail(reason="stop 38: GN assertion not yet checked on this 96x72 fixture (failed at deadline)", strict=False)
 @pytest.mark.parametrize("refresh", [False, True])
 def test_gn_tracking_recovers_a_perturbed_pose(tracking_map, refresh):
     m, f = tracking_map
@@ -201,7 +200,6 @@ def test_gn_tracking_recovers_a_perturbed_pose(tracking_map, refresh):
     assert r.loss <= 1.05 * ra.loss, (r.loss, ra.loss)
 
 
-@pytest.mark.xfail(reason="stop 38: GN assertion not yet checked on this 96x72 fixture (failed at deadline)", strict=False)
 def test_gn_planar_tracking_keeps_height_roll_and_pitch(tracking_map):
     from splatsearch.slam import planar_basis
 
