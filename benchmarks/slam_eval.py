@@ -97,6 +97,10 @@ def main(argv=None) -> int:
                    help=f"odometry prior weight (default {d.prior_weight:g})")
     p.add_argument("--prior-rot-sigma", type=float, default=d.prior_rot_sigma,
                    help=f"odometry prior's rotation sigma in rad per frame (default {d.prior_rot_sigma:g})")
+    p.add_argument("--prior-info-max", type=float, default=d.prior_info_max,
+                   help="with --track-solver gn: raise the odometry prior's rotation precision by up to this "
+                        "factor on frames whose image fixes the rotation less than the recent frames' median "
+                        f"(1: off; default {d.prior_info_max:g})")
     p.add_argument("--prior-lateral", type=float, default=d.prior_lateral_sigma,
                    help="odometry prior's sigma across the direction moved, as a fraction of the distance "
                         "(default: none, the same as along it)")
@@ -116,7 +120,8 @@ def main(argv=None) -> int:
     tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry,
                          planar=a.planar, coarse_iters=a.track_coarse_iters, patience=a.track_patience,
                          prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
-                         prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters)
+                         prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters,
+                         prior_info_max=a.prior_info_max)
     try:
         tcfg.validate()
     except ValueError as e:

@@ -169,7 +169,11 @@ class TrackerConfig:
     sideways shift, and a shift there trades against a turn. ``prior_lateral_sigma`` (a fraction
     of the distance, None: off) gives the translation across the odometry's direction of motion
     its own, tighter sigma (a wheeled robot's odometry errs along its path, hardly sideways); see
-    :meth:`prior_precision`.
+    :meth:`prior_precision`. prior_info_max (> 1, "gn" only): where the image fixes the
+    rotation less than it did on earlier frames (:attr:`TrackResult.rot_info` below the median of
+    the last ``prior_info_window`` tracked frames'), the prior's rotation precision is multiplied
+    by that shortfall, at most ``prior_info_max`` (1: off). Along a plain wall the image barely
+    separates a turn from a sideways shift, and the map's small errors then choose the heading.
     """
 
     iters: int = 40
@@ -205,6 +209,8 @@ class TrackerConfig:
     gn_step_tol: float = 1e-5
     gn_eps_rel: float = 2.0
     gn_refresh: bool = False
+    prior_info_max: float = 1.0
+    prior_info_window: int = 20
 
     def validate(self) -> None:
         if self.solver not in SOLVERS:
@@ -213,6 +219,10 @@ class TrackerConfig:
                                      and self.gn_step_tol >= 0 and self.gn_eps_rel >= 0):
             raise ValueError("gn_iters >= 1, gn_fd_step > 0, gn_eps_depth > 0, gn_eps_color > 0, "
                              "gn_eps_rel >= 0 and gn_step_tol >= 0 are required")
+        if not (self.prior_info_max >= 1 and math.isfinite(self.prior_info_max)):
+            raise ValueError(f"prior_info_max must be a finite value >= 1, got {self.prior_info_max}")
+        if self.prior_info_window < 1:
+            raise ValueError(f"prior_info_window must be >= 1, got {self.prior_info_window}")
         if self.iters < 1:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
         if self.coarse_iters < 0 or self.coarse_downscale < 1 or self.patience < 0 or self.tol < 0:
@@ -264,7 +274,10 @@ class TrackResult:
     loss0 (the same loss where the Adam steps start: the initial pose, or the RGB-D odometry's);
     valid_frac: trusted pixel fraction at the initial pose; status "ok", "diverged" or
     "no_overlap"; steps: solver steps run (all stages; Adam steps, or Levenberg-Marquardt
-    steps including rejected ones); seconds: wall time; cpu_seconds: process
+    steps including rejected ones); rot_info ("gn" only, else NaN): the image's information on
+    the rotation with the translation free, at the start pose, per image pixel and independent
+    of the residuals' size (the Schur complement of the data metric's translation block, times
+    the data loss, times the trusted fraction); seconds: wall time; cpu_seconds: process
     CPU time (all threads), which on a shared machine shows the cost better than the wall
     time."""
 
@@ -276,6 +289,7 @@ class TrackResult:
     seconds: float
     cpu_seconds: float = 0.0
     steps: int = 0
+    rot_info: float = float("nan")
 
 
 _TRACK_FNS: dict = {}
@@ -287,7 +301,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
            cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol,
-           cfg.gn_eps_rel, cfg.gn_refresh)
+           cfg.gn_eps_rel, cfg.gn_refresh, cfg.prior_info_max)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar
@@ -338,6 +352,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     step_tol = cfg.gn_step_tol
     eps_rel = cfg.gn_eps_rel
     refresh = cfg.gn_refresh
+    info_max = cfg.prior_info_max
 
     def _lm_delta(Hm, g, lam):
         """The damped step -(Hm + lam diag(Hm))^-1 g; a non-finite component becomes 0."""
@@ -376,7 +391,16 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         k, p, L, _, _, _, _ = jax.lax.while_loop(cond, body, c)
         return p, L, k, mf, L
 
-    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
+    def rotation_info(Hd, k_dim):
+        """The image's information on the rotation once the translation is free: the Schur
+        complement of the translation block of the data metric (planar: the yaw's; 6 DoF: the
+        smallest eigenvalue of the 3 x 3 rotation block's)."""
+        nr = 1 if k_dim == 3 else 3
+        Hrr, Hrt, Htt = Hd[:nr, :nr], Hd[:nr, nr:], Hd[nr:, nr:]
+        M = Hrr - Hrt @ jnp.linalg.solve(Htt + 1e-12 * jnp.eye(Htt.shape[0], dtype=Htt.dtype), Hrt.T)
+        return M[0, 0] if nr == 1 else jnp.linalg.eigvalsh(M)[0]
+
+    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref):
         """Levenberg-Marquardt from p on one level, same loss and trusted pixels as the Adam stage.
 
         The L1 terms are reweighted (IRLS): at residual r the quadratic model of |r| has curvature
@@ -389,27 +413,40 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         r0, mf = residual(p, margs, rgb, depth, vm_ref, basis, with_mask=True)
         n = jnp.maximum(mf.sum(), 1.0)
         a = mf[..., None] * jnp.array([1.0, w_c, w_c, w_c], jnp.float32) / n  # (H, W, 4) L1 weights
-        Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
 
-        def value(p, r):
-            return jnp.sum(a * jnp.abs(r)) + p @ Pp @ p
-
-        def normal_eq(p, r):
+        def data_eq(p, r):
             cols = [(residual(p + h_fd * jnp.eye(k_dim, dtype=p.dtype)[j], margs, rgb, depth, vm_ref, basis) - r)
                     / h_fd for j in range(k_dim)]
             J = jnp.stack(cols, -1)  # (H, W, 4, k)
             ar = jnp.abs(r)
             scale = jnp.sum(ar * mf[..., None], (0, 1)) / n  # mean |residual| per channel
             w = a / jnp.maximum(ar, jnp.maximum(eps, eps_rel * scale))
-            Hd = jnp.einsum("hwck,hwc,hwcl->kl", J, w, J)
-            g = jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r)) + 2.0 * Pp @ p
-            return Hd, g
+            return jnp.einsum("hwck,hwc,hwcl->kl", J, w, J), jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r))
+
+        Hd0, gd0 = data_eq(p, r0)
+        Ld0 = jnp.sum(a * jnp.abs(r0))
+        # per trusted-pixel share of the image, independent of the residuals' size (the IRLS
+        # weights scale as 1 / mean |r|)
+        info = rotation_info(Hd0, k_dim) * Ld0 * mf.mean()
+        if info_max > 1:  # the image fixes the rotation less than usual: trust the odometry more
+            f = jnp.where(info_ref > 0, jnp.clip(info_ref / jnp.maximum(info, 1e-30), 1.0, info_max), 1.0)
+            sq = jnp.concatenate([jnp.full(3, jnp.sqrt(f)), jnp.ones(3)]).astype(pw.dtype)
+            pw = pw * sq[:, None] * sq[None, :]
+        Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
+
+        def value(p, r):
+            return jnp.sum(a * jnp.abs(r)) + p @ Pp @ p
+
+        def normal_eq(p, r):
+            Hd, gd = data_eq(p, r)
+            return Hd, gd + 2.0 * Pp @ p
 
         L0 = value(p, r0)
-        Hd0, g0 = normal_eq(p, r0)
+        g0 = gd0 + 2.0 * Pp @ p
 
         if not refresh:  # the first step's gradient is the difference quotients'
-            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), Hd0, Pp, mf, L0, g0)
+            return (*_fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), Hd0, Pp, mf, L0, g0),
+                    info)
         H0 = Hd0 + 2.0 * Pp
 
         def cond(c):
@@ -434,9 +471,9 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
 
         c = (jnp.int32(0), p, L0, r0, H0, g0, jnp.float32(1e-4), jnp.asarray(False))
         k, p, L, _, _, _, _, _ = jax.lax.while_loop(cond, body, c)
-        return p, L, k, mf, L
+        return p, L, k, mf, L, info
 
-    def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
+    def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref):
         """Adam steps from p on one level; returns (best p, its loss, steps run)."""
         mask_at, loss, vg, _ = fn
         mf = mask_at(basis @ p, margs, depth, vm_ref)
@@ -464,22 +501,23 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         k, p_last, _, best_p, best_loss, _ = jax.lax.while_loop(cond, body, c)
         last = loss(p_last, margs, rgb, depth, vm_ref, basis, mf, pw)  # the last update is not scored yet
         better = last < best_loss
-        return jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last
+        return (jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last,
+                jnp.float32(jnp.nan))
 
     @jax.jit
     @full_precision
-    def run(margs, images, vm_ref, xi_start, pw):
+    def run(margs, images, vm_ref, xi_start, pw, info_ref):
         basis = planar_basis(vm_ref) if planar else jnp.eye(6, dtype=jnp.float32)
         p0 = basis.T @ xi_start  # the basis is orthonormal
         p, steps, frac0 = p0, jnp.int32(0), None
         for (rgb, depth), fn, (_, _, _, n_steps, lr_scale) in zip(images, fns, levels):
-            p, best_loss, k, mf, last = (gn_stage if cfg.solver == "gn" else stage)(
-                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw)
+            p, best_loss, k, mf, last, info = (gn_stage if cfg.solver == "gn" else stage)(
+                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref)
             frac0 = mf.mean() if frac0 is None else frac0  # the first stage's pixels are chosen at p0
             steps = steps + k
         rgb, depth = images[-1]
         loss0 = fns[-1][1](p0, margs, rgb, depth, vm_ref, basis, mf, pw)  # on the last stage's pixels
-        return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last
+        return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last, info
 
     if len(_TRACK_FNS) > 8:
         _TRACK_FNS.pop(next(iter(_TRACK_FNS)))
@@ -548,7 +586,7 @@ def odometry_init(margs, rgb, depth, viewmat, K, width: int, height: int, sil_th
 
 def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int,
           config: TrackerConfig | None = None, *, prior_sigma: tuple[float, float] | None = None,
-          prior_precision: np.ndarray | None = None, **overrides) -> TrackResult:
+          prior_precision: np.ndarray | None = None, info_ref: float | None = None, **overrides) -> TrackResult:
     """Refine the world-to-camera pose of an RGB-D frame against a frozen map.
 
     Args:
@@ -562,6 +600,10 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         prior_precision: (6, 6) weight matrix Q of the prior term xi^T Q xi on the increment xi
             (rotation vector rad, translation m) from ``init_viewmat``, already including
             ``prior_weight`` (see :meth:`TrackerConfig.prior_precision`); replaces ``prior_sigma``.
+        info_ref: with the "gn" solver and ``config.prior_info_max`` > 1, the image's usual
+            rotation information (:attr:`TrackResult.rot_info` of earlier frames; None or 0: the
+            prior is used as given). A frame whose ``rot_info`` is below it has the prior's
+            rotation precision raised by ``info_ref / rot_info``, at most ``prior_info_max``.
 
     Returns:
         :class:`TrackResult`; on divergence or without overlap its viewmat is ``init_viewmat``.
@@ -613,8 +655,8 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
                    for _, _, k, w, h, n, lr in stages)
     images = tuple((jnp.asarray(r, jnp.float32), jnp.asarray(d, jnp.float32)) for r, d, *_ in stages)
     run = _track_fn(levels, cfg)
-    vm, loss, loss0, frac0, steps, last = run(margs, images, jnp.asarray(vm0), jnp.asarray(xi_start),
-                                              jnp.asarray(pw))
+    vm, loss, loss0, frac0, steps, last, info = run(margs, images, jnp.asarray(vm0), jnp.asarray(xi_start),
+                                              jnp.asarray(pw), jnp.float32(info_ref or 0.0))
     vm, loss, loss0, frac0, last = np.asarray(vm), float(loss), float(loss0), float(frac0), float(last)
     status = "ok"
     if frac0 < cfg.min_valid_frac:
@@ -629,7 +671,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         if ang > cfg.max_rot or dist > cfg.max_trans:
             status, vm = "diverged", vm0
     return TrackResult(vm.astype(np.float32), loss, loss0, frac0, status, time.perf_counter() - t0,
-                       time.process_time() - c0, int(steps))
+                       time.process_time() - c0, int(steps), float(info))
 
 
 # --------------------------------------------------------------------------------------------
@@ -685,6 +727,7 @@ class SLAM:
         self.poses: list[np.ndarray] = []  # estimate per processed frame
         self.results: list[FrameResult] = []
         self._last_odom: np.ndarray | None = None
+        self._rot_info: list[float] = []  # TrackResult.rot_info of the frames tracked "ok"
 
     @property
     def K(self):
@@ -756,9 +799,13 @@ class SLAM:
         tr = None
         t_track = 0.0
         if self.track_enabled and not first:
+            recent = self._rot_info[-self.tcfg.prior_info_window:]
+            info_ref = float(np.median(recent)) if len(recent) >= 3 and prior_q is not None else None
             tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg,
-                       prior_precision=prior_q)
+                       prior_precision=prior_q, info_ref=info_ref)
             t_track = tr.seconds
+            if tr.status == "ok" and np.isfinite(tr.rot_info):
+                self._rot_info.append(tr.rot_info)
             if tr.status == "diverged":
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat

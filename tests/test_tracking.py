@@ -230,6 +230,23 @@ def test_gn_prior_and_bad_frames(tracking_map):
 
 def test_bad_solver_config():
     for bad in (dict(solver="newton"), dict(gn_iters=0), dict(gn_fd_step=0.0), dict(gn_eps_depth=-1.0),
-                dict(gn_eps_rel=-1.0)):
+                dict(gn_eps_rel=-1.0), dict(prior_info_max=0.5), dict(prior_info_window=0)):
         with pytest.raises(ValueError):
             TrackerConfig(**bad).validate()
+
+
+def test_gn_information_weighted_prior(tracking_map):
+    m, f = tracking_map
+    xi = jnp.array([0.0, 0.012, 0.0, 0.0, 0.0, 0.0])  # 0.7 degrees of turn off
+    noisy = np.asarray(perturb_viewmat(jnp.asarray(f.viewmat), xi))
+    kw = dict(solver="gn", planar=True, prior_sigma=(0.01, 0.01))
+    plain = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, **kw)
+    assert plain.rot_info > 0
+    # the image fixes the turn as well as usual: the prior is used as given
+    same = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, prior_info_max=100.0, info_ref=plain.rot_info, **kw)
+    np.testing.assert_allclose(same.viewmat, plain.viewmat, atol=1e-6)
+    # far less than usual: the rotation stays nearer the odometry's
+    weak = track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, prior_info_max=100.0, info_ref=1e3 * plain.rot_info,
+                 **kw)
+    assert pose_distance(weak.viewmat, noisy)[0] < 0.5 * pose_distance(plain.viewmat, noisy)[0]
+    assert np.isnan(track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="adam", iters=2).rot_info)
