@@ -159,7 +159,8 @@ class TrackerConfig:
     the stage's start and each step then costs one forward + pose-only backward for the exact
     gradient; True: Jacobian and gradient are re-formed from k + 1 renders after every accepted
     step. A step that does not lower the loss is rejected and the damping raised; a stage ends
-    after ``gn_iters`` steps, a step below ``gn_step_tol``, or damping past 1e6.
+    after ``gn_iters`` steps, a step below ``gn_step_tol``, an accepted step that lowers the loss
+    by less than a fraction ``gn_loss_tol`` (0: never), or damping past 1e6.
 
     Odometry prior (used when :func:`track` gets ``prior_sigma``, which :class:`SLAM` passes
     when the robot's odometry is given): the loss adds ``prior_weight`` x (|w| / sigma_rot)^2 +
@@ -210,6 +211,7 @@ class TrackerConfig:
     gn_step_tol: float = 1e-5
     gn_eps_rel: float = 2.0
     gn_refresh: bool = False
+    gn_loss_tol: float = 0.0
     prior_info_max: float = 1.0
     prior_info_window: int = 20
 
@@ -222,6 +224,8 @@ class TrackerConfig:
                              "gn_eps_rel >= 0 and gn_step_tol >= 0 are required")
         if not (self.prior_info_max >= 1 and math.isfinite(self.prior_info_max)):
             raise ValueError(f"prior_info_max must be a finite value >= 1, got {self.prior_info_max}")
+        if not self.gn_loss_tol >= 0:
+            raise ValueError(f"gn_loss_tol must be >= 0, got {self.gn_loss_tol}")
         if self.prior_info_window < 1:
             raise ValueError(f"prior_info_window must be >= 1, got {self.prior_info_window}")
         if self.iters < 1:
@@ -302,7 +306,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
            cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol,
-           cfg.gn_eps_rel, cfg.gn_refresh, cfg.prior_info_max)
+           cfg.gn_eps_rel, cfg.gn_refresh, cfg.prior_info_max, cfg.gn_loss_tol)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar

@@ -30,6 +30,7 @@ def make_gn_stage(cfg) -> Callable:
     h_fd = cfg.gn_fd_step
     eps = jnp.array([cfg.gn_eps_depth] + [cfg.gn_eps_color] * 3, jnp.float32)
     step_tol = cfg.gn_step_tol
+    loss_tol = cfg.gn_loss_tol
     eps_rel = cfg.gn_eps_rel
     refresh = cfg.gn_refresh
     info_max = cfg.prior_info_max
@@ -62,7 +63,7 @@ def make_gn_stage(cfg) -> Callable:
             delta = _lm_delta(Hm, jnp.where(jnp.isfinite(g), g, 0.0), lam)
             L_new, g_new = vg(p + delta, *args)
             accept = L_new < L
-            small = jnp.max(jnp.abs(delta)) < step_tol
+            small = (jnp.max(jnp.abs(delta)) < step_tol) | (accept & (L - L_new < loss_tol * L))
             p, L, g = (jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L), jnp.where(accept, g_new, g))
             lam = jnp.where(accept, lam * 0.3, lam * 10.0)
             return it + 1, p, L, g, Hm, lam, small | (lam > 1e6)
@@ -142,7 +143,7 @@ def make_gn_stage(cfg) -> Callable:
             accept = L_new < L  # NaN compares False
             Hn, gn = jax.lax.cond(accept, lambda: normal_eq(p_new, r_new), lambda: (Hm - 2.0 * Pp, g))
             Hn = Hn + 2.0 * Pp
-            small = jnp.max(jnp.abs(delta)) < step_tol
+            small = (jnp.max(jnp.abs(delta)) < step_tol) | (accept & (L - L_new < loss_tol * L))
             p, L, r = (jnp.where(accept, p_new, p), jnp.where(accept, L_new, L),
                        jnp.where(accept, r_new, r))
             lam = jnp.where(accept, lam * 0.3, lam * 10.0)
