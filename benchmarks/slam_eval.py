@@ -87,6 +87,9 @@ def main(argv=None) -> int:
                         f"--track-gn-iters steps; default {d.solver})")
     p.add_argument("--track-gn-iters", type=int, default=d.gn_iters,
                    help=f"most Levenberg-Marquardt steps per frame with --track-solver gn (default {d.gn_iters})")
+    p.add_argument("--track-gn-loss-tol", type=float, default=d.gn_loss_tol,
+                   help="with --track-solver gn: stop after an accepted step that lowers the loss by less than "
+                        f"this fraction (0: never; default {d.gn_loss_tol:g})")
     p.add_argument("--track-iters", type=int, default=d.iters,
                    help=f"most tracking Adam steps per frame (default {d.iters})")
     p.add_argument("--track-coarse-iters", type=int, default=d.coarse_iters,
@@ -121,7 +124,7 @@ def main(argv=None) -> int:
                          planar=a.planar, coarse_iters=a.track_coarse_iters, patience=a.track_patience,
                          prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
                          prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters,
-                         prior_info_max=a.prior_info_max)
+                         prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol)
     try:
         tcfg.validate()
     except ValueError as e:

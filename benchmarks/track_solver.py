@@ -1,7 +1,7 @@
 """Tracking solvers side by side: Adam (40 steps) vs Levenberg-Marquardt ("gn"), alternating in one process.
 
     python benchmarks/track_solver.py [--data sim,tum] [--seed 0] [--planar] [--map-frames 12]
-                                      [--track-frames 8] [--rounds 2] [--gn-iters 8] [--gn-loss-tol 0]
+                                      [--track-frames 8] [--rounds 2] [--gn-iters 8] [--gn-loss-tol 1e-3]
 
 Same maps and frames as ``track_speed.py`` (a map fitted with ground-truth poses to the first
 ``--map-frames`` frames, the next ``--track-frames`` tracked against it frozen; simulator:
@@ -33,8 +33,9 @@ def main(argv=None) -> int:
     ap.add_argument("--track-frames", type=int, default=8, help="frames tracked after them (default 8)")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds over the tracked frames (default 2)")
     ap.add_argument("--gn-iters", type=int, default=8, help="most Levenberg-Marquardt iterations (default 8)")
-    ap.add_argument("--gn-loss-tol", type=float, default=0.0,
-                    help="GN stops after an accepted step that lowers the loss by less than this fraction (default 0)")
+    ap.add_argument("--gn-loss-tol", type=float, default=1e-3,
+                    help="GN stops after an accepted step that lowers the loss by less than this fraction "
+                         "(default 1e-3, TrackerConfig's)")
     ap.add_argument("--solvers", default="adam,gn", help="comma-separated subset of adam,gn (default both)")
     a = ap.parse_args(argv)
     data = a.data.split(",")
