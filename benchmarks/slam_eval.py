@@ -104,6 +104,9 @@ def main(argv=None) -> int:
                    help="with --track-solver gn: raise the odometry prior's rotation precision by up to this "
                         "factor on frames whose image fixes the rotation less than the recent frames' median "
                         f"(1: off; default {d.prior_info_max:g})")
+    p.add_argument("--map-min-info", type=float, default=d.map_min_info,
+                   help="with --track-solver gn: track but do not map a frame whose image fixes the rotation less "
+                        f"than this fraction of the recent frames' median (0: off; default {d.map_min_info:g})")
     p.add_argument("--prior-lateral", type=float, default=d.prior_lateral_sigma,
                    help="odometry prior's sigma across the direction moved, as a fraction of the distance "
                         "(default: none, the same as along it)")
@@ -124,7 +127,8 @@ def main(argv=None) -> int:
                          planar=a.planar, coarse_iters=a.track_coarse_iters, patience=a.track_patience,
                          prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
                          prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters,
-                         prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol)
+                         prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol,
+                         map_min_info=a.map_min_info)
     try:
         tcfg.validate()
     except ValueError as e:

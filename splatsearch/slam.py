@@ -176,6 +176,10 @@ class TrackerConfig:
     the last ``prior_info_window`` tracked frames'), the prior's rotation precision is multiplied
     by that shortfall, at most ``prior_info_max`` (1: off). Along a plain wall the image barely
     separates a turn from a sideways shift, and the map's small errors then choose the heading.
+    map_min_info (in [0, 1), "gn" only; 0: off): :class:`SLAM` tracks but does not map a frame
+    whose ``rot_info`` is below this fraction of that median (its pose is poorly fixed, and what it
+    would add to the map would carry its heading error into later frames), at most
+    ``map_skip_max`` frames in a row.
     """
 
     iters: int = 40
@@ -214,6 +218,8 @@ class TrackerConfig:
     gn_loss_tol: float = 1e-3
     prior_info_max: float = 1.0
     prior_info_window: int = 20
+    map_min_info: float = 0.0
+    map_skip_max: int = 5
 
     def validate(self) -> None:
         if self.solver not in SOLVERS:
@@ -226,6 +232,8 @@ class TrackerConfig:
             raise ValueError(f"prior_info_max must be a finite value >= 1, got {self.prior_info_max}")
         if not self.gn_loss_tol >= 0:
             raise ValueError(f"gn_loss_tol must be >= 0, got {self.gn_loss_tol}")
+        if not (0 <= self.map_min_info < 1) or self.map_skip_max < 0:
+            raise ValueError("map_min_info in [0, 1) and map_skip_max >= 0 are required")
         if self.prior_info_window < 1:
             raise ValueError(f"prior_info_window must be >= 1, got {self.prior_info_window}")
         if self.iters < 1:
@@ -565,7 +573,8 @@ class FrameResult:
 
     viewmat: the frame's pose estimate (world-to-camera); status: "mapped", "first",
     "skipped_no_depth" (too little valid depth), "skipped_bad_rgb" (NaN/Inf colour),
-    "skipped_bad_pose" (a given pose that is not finite) or "skipped_tracking" (diverged: the
+    "skipped_bad_pose" (a given pose that is not finite), "tracked" (tracked, not mapped: the image
+    fixed its rotation too weakly, ``TrackerConfig.map_min_info``) or "skipped_tracking" (diverged: the
     pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when
     tracked; t_track, t_map: seconds; stats: the mapper's update stats when mapped.
     """
@@ -609,6 +618,7 @@ class SLAM:
         self.results: list[FrameResult] = []
         self._last_odom: np.ndarray | None = None
         self._rot_info: list[float] = []  # TrackResult.rot_info of the frames tracked "ok"
+        self._unmapped = 0  # frames in a row tracked but not mapped (map_min_info)
 
     @property
     def K(self):
@@ -681,12 +691,17 @@ class SLAM:
         t_track = 0.0
         if self.track_enabled and not first:
             recent = self._rot_info[-self.tcfg.prior_info_window:]
-            info_ref = float(np.median(recent)) if len(recent) >= 3 and prior_q is not None else None
+            info_ref = float(np.median(recent)) if len(recent) >= 3 else None
             tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg,
                        prior_precision=prior_q, info_ref=info_ref)
             t_track = tr.seconds
             if tr.status == "ok" and np.isfinite(tr.rot_info):
                 self._rot_info.append(tr.rot_info)
+                weak = info_ref is not None and tr.rot_info < self.tcfg.map_min_info * info_ref
+                if weak and self._unmapped < self.tcfg.map_skip_max:
+                    self._unmapped += 1
+                    return self._finish(FrameResult(i, tr.viewmat, "tracked", tr, t_track))
+            self._unmapped = 0
             if tr.status == "diverged":
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat

@@ -232,7 +232,7 @@ def test_gn_prior_and_bad_frames(tracking_map):
 def test_bad_solver_config():
     for bad in (dict(solver="newton"), dict(gn_iters=0), dict(gn_fd_step=0.0), dict(gn_eps_depth=-1.0),
                 dict(gn_eps_rel=-1.0), dict(prior_info_max=0.5), dict(prior_info_window=0),
-                dict(gn_loss_tol=-1.0)):
+                dict(gn_loss_tol=-1.0), dict(map_min_info=1.0), dict(map_skip_max=-1)):
         with pytest.raises(ValueError):
             TrackerConfig(**bad).validate()
 
