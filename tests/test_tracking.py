@@ -252,3 +252,19 @@ def test_gn_information_weighted_prior(tracking_map):
                  **kw)
     assert pose_distance(weak.viewmat, noisy)[0] < 0.5 * pose_distance(plain.viewmat, noisy)[0]
     assert np.isnan(track(m.map, f.rgb, f.depth, noisy, m.K, m.W, m.H, solver="adam", iters=2).rot_info)
+
+
+def test_slam_leaves_weakly_fixed_frames_out_of_the_map(tracking_walk):
+    frames, K, W, H = tracking_walk
+    tcfg = TrackerConfig(solver="gn", gn_iters=3, map_min_info=0.5, map_skip_max=1)
+    slam = SLAM(K, W, H, MapperConfig(iters=2, first_iters=40, stride=1, initial_capacity=8192), tcfg)
+    slam.process(frames[0].rgb, frames[0].depth, frames[0].viewmat)
+    n0 = slam.mapper.map.n_active
+    slam._rot_info = [1e9] * 3  # earlier frames fixed the rotation far better than this one will
+    r1 = slam.process(frames[1].rgb, frames[1].depth)
+    assert r1.status == "tracked" and not r1.mapped and r1.track.status == "ok"
+    assert slam.mapper.map.n_active == n0 and np.isfinite(r1.viewmat).all()
+    assert pose_distance(r1.viewmat, frames[1].viewmat)[1] < 0.05
+    # no more than map_skip_max frames in a row are left out
+    r2 = slam.process(frames[2].rgb, frames[2].depth)
+    assert r2.status == "mapped"
