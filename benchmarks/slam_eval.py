@@ -107,6 +107,8 @@ def main(argv=None) -> int:
     p.add_argument("--map-min-info", type=float, default=d.map_min_info,
                    help="with --track-solver gn: track but do not map a frame whose image fixes the rotation less "
                         f"than this fraction of the recent frames' median (0: off; default {d.map_min_info:g})")
+    p.add_argument("--map-skip-max", type=int, default=d.map_skip_max,
+                   help=f"with --map-min-info: most frames in a row left out of the map (default {d.map_skip_max})")
     p.add_argument("--prior-lateral", type=float, default=d.prior_lateral_sigma,
                    help="odometry prior's sigma across the direction moved, as a fraction of the distance "
                         "(default: none, the same as along it)")
@@ -128,7 +130,7 @@ def main(argv=None) -> int:
                          prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
                          prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters,
                          prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol,
-                         map_min_info=a.map_min_info)
+                         map_min_info=a.map_min_info, map_skip_max=a.map_skip_max)
     try:
         tcfg.validate()
     except ValueError as e:
