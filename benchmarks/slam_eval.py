@@ -87,6 +87,9 @@ def main(argv=None) -> int:
                         f"--track-gn-iters steps; default {d.solver})")
     p.add_argument("--track-gn-iters", type=int, default=d.gn_iters,
                    help=f"most Levenberg-Marquardt steps per frame with --track-solver gn (default {d.gn_iters})")
+    p.add_argument("--track-gn-loss-tol", type=float, default=d.gn_loss_tol,
+                   help="with --track-solver gn: stop after an accepted step that lowers the loss by less than "
+                        f"this fraction (0: never; default {d.gn_loss_tol:g})")
     p.add_argument("--track-iters", type=int, default=d.iters,
                    help=f"most tracking Adam steps per frame (default {d.iters})")
     p.add_argument("--track-coarse-iters", type=int, default=d.coarse_iters,
@@ -97,6 +100,15 @@ def main(argv=None) -> int:
                    help=f"odometry prior weight (default {d.prior_weight:g})")
     p.add_argument("--prior-rot-sigma", type=float, default=d.prior_rot_sigma,
                    help=f"odometry prior's rotation sigma in rad per frame (default {d.prior_rot_sigma:g})")
+    p.add_argument("--prior-info-max", type=float, default=d.prior_info_max,
+                   help="with --track-solver gn: raise the odometry prior's rotation precision by up to this "
+                        "factor on frames whose image fixes the rotation less than the recent frames' median "
+                        f"(1: off; default {d.prior_info_max:g})")
+    p.add_argument("--map-min-info", type=float, default=d.map_min_info,
+                   help="with --track-solver gn: track but do not map a frame whose image fixes the rotation less "
+                        f"than this fraction of the recent frames' median (0: off; default {d.map_min_info:g})")
+    p.add_argument("--map-skip-max", type=int, default=d.map_skip_max,
+                   help=f"with --map-min-info: most frames in a row left out of the map (default {d.map_skip_max})")
     p.add_argument("--prior-lateral", type=float, default=d.prior_lateral_sigma,
                    help="odometry prior's sigma across the direction moved, as a fraction of the distance "
                         "(default: none, the same as along it)")
@@ -116,7 +128,9 @@ def main(argv=None) -> int:
     tcfg = TrackerConfig(iters=a.track_iters, downscale=a.track_downscale, rgbd_odometry=a.rgbd_odometry,
                          planar=a.planar, coarse_iters=a.track_coarse_iters, patience=a.track_patience,
                          prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
-                         prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters)
+                         prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters,
+                         prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol,
+                         map_min_info=a.map_min_info, map_skip_max=a.map_skip_max)
     try:
         tcfg.validate()
     except ValueError as e:

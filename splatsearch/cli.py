@@ -472,7 +472,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                         "at most --track-gn-iters steps) or 'adam' (SplaTAM's first-order steps, --track-iters; "
                         "default: TrackerConfig's)")
     m.add_argument("--track-gn-iters", type=positive_int, default=None,
-                   help="with --track-solver gn: most Levenberg-Marquardt steps per frame (default 5)")
+                   help="with --track-solver gn: most Levenberg-Marquardt steps per frame "
+                        "(default: TrackerConfig's, 10)")
     m.add_argument("--track-coarse-iters", type=int, default=None,
                    help="most tracking Adam steps first on images 4x smaller still "
                         "(0: none; default 0)")

@@ -105,7 +105,9 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
                        "track_status": r.track.status if r.track else None,
                        "track_cpu_s": round(r.track.cpu_seconds, 4) if r.track else None,
                        "track_steps": r.track.steps if r.track else None,
-                       "track_loss": _finite(r.track.loss) if r.track else None} for i, r in zip(done, slam.results)],
+                       "track_loss": _finite(r.track.loss) if r.track else None,
+                       "track_rot_info": _finite(r.track.rot_info) if r.track else None}
+                      for i, r in zip(done, slam.results)],
     }
     bad = [(int(i), r.status) for i, r in zip(done, slam.results) if r.status.startswith("skipped")]
     summary["bad_frames"] = bad

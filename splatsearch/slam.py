@@ -2,7 +2,7 @@
 
 Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map frozen, the pose of
 the new frame is refined through the rasterizer's ``viewmat`` gradient, by Adam (SplaTAM's) or by
-Levenberg-Marquardt (``TrackerConfig.solver``; see there). The loss is L1 on
+Levenberg-Marquardt (``TrackerConfig.solver``; :mod:`splatsearch.tracking_gn`). The loss is L1 on
 depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette > ``sil_thresh``)
 with valid observed depth, leaving out pixels whose depth error exceeds ``outlier_k`` times the
 median (depth edges, moving things); those pixels are chosen once per stage, at the pose the
@@ -37,6 +37,7 @@ from splatsearch.mapper import Mapper, MapperConfig, _bucket, _gather_rows
 from splatsearch.precision import full_precision
 from splatsearch.rasterization import rasterize
 from splatsearch.rgbd import clean_depth
+from splatsearch.tracking_gn import make_gn_stage
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,7 +159,8 @@ class TrackerConfig:
     the stage's start and each step then costs one forward + pose-only backward for the exact
     gradient; True: Jacobian and gradient are re-formed from k + 1 renders after every accepted
     step. A step that does not lower the loss is rejected and the damping raised; a stage ends
-    after ``gn_iters`` steps, a step below ``gn_step_tol``, or damping past 1e6.
+    after ``gn_iters`` steps, a step below ``gn_step_tol``, an accepted step that lowers the loss
+    by less than a fraction ``gn_loss_tol`` (0: never), or damping past 1e6.
 
     Odometry prior (used when :func:`track` gets ``prior_sigma``, which :class:`SLAM` passes
     when the robot's odometry is given): the loss adds ``prior_weight`` x (|w| / sigma_rot)^2 +
@@ -169,7 +171,15 @@ class TrackerConfig:
     sideways shift, and a shift there trades against a turn. ``prior_lateral_sigma`` (a fraction
     of the distance, None: off) gives the translation across the odometry's direction of motion
     its own, tighter sigma (a wheeled robot's odometry errs along its path, hardly sideways); see
-    :meth:`prior_precision`.
+    :meth:`prior_precision`. prior_info_max (> 1, "gn" only): where the image fixes the
+    rotation less than it did on earlier frames (:attr:`TrackResult.rot_info` below the median of
+    the last ``prior_info_window`` tracked frames'), the prior's rotation precision is multiplied
+    by that shortfall, at most ``prior_info_max`` (1: off). Along a plain wall the image barely
+    separates a turn from a sideways shift, and the map's small errors then choose the heading.
+    map_min_info (in [0, 1), "gn" only; 0: off): :class:`SLAM` tracks but does not map a frame
+    whose ``rot_info`` is below this fraction of that median (its pose is poorly fixed, and what it
+    would add to the map would carry its heading error into later frames), at most
+    ``map_skip_max`` frames in a row.
     """
 
     iters: int = 40
@@ -205,6 +215,11 @@ class TrackerConfig:
     gn_step_tol: float = 1e-5
     gn_eps_rel: float = 2.0
     gn_refresh: bool = False
+    gn_loss_tol: float = 1e-3
+    prior_info_max: float = 1.0
+    prior_info_window: int = 20
+    map_min_info: float = 0.0
+    map_skip_max: int = 5
 
     def validate(self) -> None:
         if self.solver not in SOLVERS:
@@ -213,6 +228,14 @@ class TrackerConfig:
                                      and self.gn_step_tol >= 0 and self.gn_eps_rel >= 0):
             raise ValueError("gn_iters >= 1, gn_fd_step > 0, gn_eps_depth > 0, gn_eps_color > 0, "
                              "gn_eps_rel >= 0 and gn_step_tol >= 0 are required")
+        if not (self.prior_info_max >= 1 and math.isfinite(self.prior_info_max)):
+            raise ValueError(f"prior_info_max must be a finite value >= 1, got {self.prior_info_max}")
+        if not self.gn_loss_tol >= 0:
+            raise ValueError(f"gn_loss_tol must be >= 0, got {self.gn_loss_tol}")
+        if not (0 <= self.map_min_info < 1) or self.map_skip_max < 0:
+            raise ValueError("map_min_info in [0, 1) and map_skip_max >= 0 are required")
+        if self.prior_info_window < 1:
+            raise ValueError(f"prior_info_window must be >= 1, got {self.prior_info_window}")
         if self.iters < 1:
             raise ValueError(f"tracking iters must be >= 1, got {self.iters}")
         if self.coarse_iters < 0 or self.coarse_downscale < 1 or self.patience < 0 or self.tol < 0:
@@ -264,7 +287,10 @@ class TrackResult:
     loss0 (the same loss where the Adam steps start: the initial pose, or the RGB-D odometry's);
     valid_frac: trusted pixel fraction at the initial pose; status "ok", "diverged" or
     "no_overlap"; steps: solver steps run (all stages; Adam steps, or Levenberg-Marquardt
-    steps including rejected ones); seconds: wall time; cpu_seconds: process
+    steps including rejected ones); rot_info ("gn" only, else NaN): the image's information on
+    the rotation with the translation free, at the start pose, per image pixel and independent
+    of the residuals' size (the Schur complement of the data metric's translation block, times
+    the data loss, times the trusted fraction); seconds: wall time; cpu_seconds: process
     CPU time (all threads), which on a shared machine shows the cost better than the wall
     time."""
 
@@ -276,6 +302,7 @@ class TrackResult:
     seconds: float
     cpu_seconds: float = 0.0
     steps: int = 0
+    rot_info: float = float("nan")
 
 
 _TRACK_FNS: dict = {}
@@ -287,7 +314,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
            cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol,
-           cfg.gn_eps_rel, cfg.gn_refresh)
+           cfg.gn_eps_rel, cfg.gn_refresh, cfg.prior_info_max, cfg.gn_loss_tol)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar
@@ -333,99 +360,9 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         return mask_at, loss, jax.value_and_grad(loss), residual
 
     fns = [make_level(Kb, W, H) for Kb, W, H, _, _ in levels]
-    h_fd = cfg.gn_fd_step
-    eps = jnp.array([cfg.gn_eps_depth] + [cfg.gn_eps_color] * 3, jnp.float32)
-    step_tol = cfg.gn_step_tol
-    eps_rel = cfg.gn_eps_rel
-    refresh = cfg.gn_refresh
+    gn_stage = make_gn_stage(cfg)
 
-    def _lm_delta(Hm, g, lam):
-        """The damped step -(Hm + lam diag(Hm))^-1 g; a non-finite component becomes 0."""
-        A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(Hm.shape[0], dtype=Hm.dtype)
-        delta = -jnp.linalg.solve(A, g)
-        return jnp.where(jnp.isfinite(delta), delta, 0.0)
-
-    def _fixed_metric(p, n_iters, vg, args, Hm, mf, L0, g0):
-        """Levenberg-Marquardt steps from p (loss L0, gradient g0) with the metric ``Hm`` held
-        fixed and the exact gradient of the loss (the rasterizer's pose-only backward) after
-        every accepted step: one forward + backward per step instead of k + 1 forwards, and the
-        fixed point is the loss's own minimum whatever the metric's error."""
-        def cond(c):
-            return (c[0] < n_iters) & ~c[-1]
-
-        def body(c):
-            it, p, L, g, Hm, lam, done = c
-            delta = _lm_delta(Hm, jnp.where(jnp.isfinite(g), g, 0.0), lam)
-            L_new, g_new = vg(p + delta, *args)
-            accept = L_new < L
-            small = jnp.max(jnp.abs(delta)) < step_tol
-            p, L, g = (jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L), jnp.where(accept, g_new, g))
-            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
-            return it + 1, p, L, g, Hm, lam, small | (lam > 1e6)
-
-        c = (jnp.int32(0), p, L0, g0, Hm, jnp.float32(1e-4), jnp.asarray(False))
-        k, p, L, _, _, _, _ = jax.lax.while_loop(cond, body, c)
-        return p, L, k, mf, L
-
-    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
-        """Levenberg-Marquardt from p on one level, same loss and trusted pixels as the Adam stage.
-
-        The L1 terms are reweighted (IRLS): at residual r the quadratic model of |r| has curvature
-        1 / max(|r|, eps) and slope sign(r), which majorises |r|, so a step that lowers the model
-        lowers the loss while the linearisation holds. The Jacobian of the rendered depth and
-        colour w.r.t. the k pose parameters comes from k forward-difference renders (the
-        rasterizer has no forward mode); a rejected step raises the damping and reuses it."""
-        mask_at, loss, vg, residual = fn
-        k_dim = p.shape[0]
-        r0, mf = residual(p, margs, rgb, depth, vm_ref, basis, with_mask=True)
-        n = jnp.maximum(mf.sum(), 1.0)
-        a = mf[..., None] * jnp.array([1.0, w_c, w_c, w_c], jnp.float32) / n  # (H, W, 4) L1 weights
-        Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
-
-        def value(p, r):
-            return jnp.sum(a * jnp.abs(r)) + p @ Pp @ p
-
-        def normal_eq(p, r):
-            cols = [(residual(p + h_fd * jnp.eye(k_dim, dtype=p.dtype)[j], margs, rgb, depth, vm_ref, basis) - r)
-                    / h_fd for j in range(k_dim)]
-            J = jnp.stack(cols, -1)  # (H, W, 4, k)
-            ar = jnp.abs(r)
-            scale = jnp.sum(ar * mf[..., None], (0, 1)) / n  # mean |residual| per channel
-            w = a / jnp.maximum(ar, jnp.maximum(eps, eps_rel * scale))
-            Hm = jnp.einsum("hwck,hwc,hwcl->kl", J, w, J) + 2.0 * Pp
-            g = jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r)) + 2.0 * Pp @ p
-            return Hm, g
-
-        L0 = value(p, r0)
-        H0, g0 = normal_eq(p, r0)
-
-        if not refresh:  # the first step's gradient is the difference quotients'
-            return _fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), H0, mf, L0, g0)
-
-        def cond(c):
-            it, _, _, _, _, _, _, done = c
-            return (it < n_iters) & ~done
-
-        def body(c):
-            it, p, L, r, Hm, g, lam, done = c
-            delta = _lm_delta(Hm, g, lam)
-            p_new = p + delta
-            r_new = residual(p_new, margs, rgb, depth, vm_ref, basis)
-            L_new = value(p_new, r_new)
-            accept = L_new < L  # NaN compares False
-            Hn, gn = jax.lax.cond(accept, lambda: normal_eq(p_new, r_new), lambda: (Hm, g))
-            small = jnp.max(jnp.abs(delta)) < step_tol
-            p, L, r = (jnp.where(accept, p_new, p), jnp.where(accept, L_new, L),
-                       jnp.where(accept, r_new, r))
-            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
-            done = small | (lam > 1e6)
-            return it + 1, p, L, r, Hn, gn, lam, done
-
-        c = (jnp.int32(0), p, L0, r0, H0, g0, jnp.float32(1e-4), jnp.asarray(False))
-        k, p, L, _, _, _, _, _ = jax.lax.while_loop(cond, body, c)
-        return p, L, k, mf, L
-
-    def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw):
+    def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref):
         """Adam steps from p on one level; returns (best p, its loss, steps run)."""
         mask_at, loss, vg, _ = fn
         mf = mask_at(basis @ p, margs, depth, vm_ref)
@@ -453,22 +390,23 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         k, p_last, _, best_p, best_loss, _ = jax.lax.while_loop(cond, body, c)
         last = loss(p_last, margs, rgb, depth, vm_ref, basis, mf, pw)  # the last update is not scored yet
         better = last < best_loss
-        return jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last
+        return (jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last,
+                jnp.float32(jnp.nan))
 
     @jax.jit
     @full_precision
-    def run(margs, images, vm_ref, xi_start, pw):
+    def run(margs, images, vm_ref, xi_start, pw, info_ref):
         basis = planar_basis(vm_ref) if planar else jnp.eye(6, dtype=jnp.float32)
         p0 = basis.T @ xi_start  # the basis is orthonormal
         p, steps, frac0 = p0, jnp.int32(0), None
         for (rgb, depth), fn, (_, _, _, n_steps, lr_scale) in zip(images, fns, levels):
-            p, best_loss, k, mf, last = (gn_stage if cfg.solver == "gn" else stage)(
-                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw)
+            p, best_loss, k, mf, last, info = (gn_stage if cfg.solver == "gn" else stage)(
+                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref)
             frac0 = mf.mean() if frac0 is None else frac0  # the first stage's pixels are chosen at p0
             steps = steps + k
         rgb, depth = images[-1]
         loss0 = fns[-1][1](p0, margs, rgb, depth, vm_ref, basis, mf, pw)  # on the last stage's pixels
-        return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last
+        return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last, info
 
     if len(_TRACK_FNS) > 8:
         _TRACK_FNS.pop(next(iter(_TRACK_FNS)))
@@ -537,7 +475,7 @@ def odometry_init(margs, rgb, depth, viewmat, K, width: int, height: int, sil_th
 
 def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int,
           config: TrackerConfig | None = None, *, prior_sigma: tuple[float, float] | None = None,
-          prior_precision: np.ndarray | None = None, **overrides) -> TrackResult:
+          prior_precision: np.ndarray | None = None, info_ref: float | None = None, **overrides) -> TrackResult:
     """Refine the world-to-camera pose of an RGB-D frame against a frozen map.
 
     Args:
@@ -551,6 +489,10 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         prior_precision: (6, 6) weight matrix Q of the prior term xi^T Q xi on the increment xi
             (rotation vector rad, translation m) from ``init_viewmat``, already including
             ``prior_weight`` (see :meth:`TrackerConfig.prior_precision`); replaces ``prior_sigma``.
+        info_ref: with the "gn" solver and ``config.prior_info_max`` > 1, the image's usual
+            rotation information (:attr:`TrackResult.rot_info` of earlier frames; None or 0: the
+            prior is used as given). A frame whose ``rot_info`` is below it has the prior's
+            rotation precision raised by ``info_ref / rot_info``, at most ``prior_info_max``.
 
     Returns:
         :class:`TrackResult`; on divergence or without overlap its viewmat is ``init_viewmat``.
@@ -602,8 +544,8 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
                    for _, _, k, w, h, n, lr in stages)
     images = tuple((jnp.asarray(r, jnp.float32), jnp.asarray(d, jnp.float32)) for r, d, *_ in stages)
     run = _track_fn(levels, cfg)
-    vm, loss, loss0, frac0, steps, last = run(margs, images, jnp.asarray(vm0), jnp.asarray(xi_start),
-                                              jnp.asarray(pw))
+    vm, loss, loss0, frac0, steps, last, info = run(margs, images, jnp.asarray(vm0), jnp.asarray(xi_start),
+                                              jnp.asarray(pw), jnp.float32(info_ref or 0.0))
     vm, loss, loss0, frac0, last = np.asarray(vm), float(loss), float(loss0), float(frac0), float(last)
     status = "ok"
     if frac0 < cfg.min_valid_frac:
@@ -618,7 +560,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         if ang > cfg.max_rot or dist > cfg.max_trans:
             status, vm = "diverged", vm0
     return TrackResult(vm.astype(np.float32), loss, loss0, frac0, status, time.perf_counter() - t0,
-                       time.process_time() - c0, int(steps))
+                       time.process_time() - c0, int(steps), float(info))
 
 
 # --------------------------------------------------------------------------------------------
@@ -631,7 +573,8 @@ class FrameResult:
 
     viewmat: the frame's pose estimate (world-to-camera); status: "mapped", "first",
     "skipped_no_depth" (too little valid depth), "skipped_bad_rgb" (NaN/Inf colour),
-    "skipped_bad_pose" (a given pose that is not finite) or "skipped_tracking" (diverged: the
+    "skipped_bad_pose" (a given pose that is not finite), "tracked" (tracked, not mapped: the image
+    fixed its rotation too weakly, ``TrackerConfig.map_min_info``) or "skipped_tracking" (diverged: the
     pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when
     tracked; t_track, t_map: seconds; stats: the mapper's update stats when mapped.
     """
@@ -674,6 +617,8 @@ class SLAM:
         self.poses: list[np.ndarray] = []  # estimate per processed frame
         self.results: list[FrameResult] = []
         self._last_odom: np.ndarray | None = None
+        self._rot_info: list[float] = []  # TrackResult.rot_info of the frames tracked "ok"
+        self._unmapped = 0  # frames in a row tracked but not mapped (map_min_info)
 
     @property
     def K(self):
@@ -745,9 +690,18 @@ class SLAM:
         tr = None
         t_track = 0.0
         if self.track_enabled and not first:
+            recent = self._rot_info[-self.tcfg.prior_info_window:]
+            info_ref = float(np.median(recent)) if len(recent) >= 3 else None
             tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg,
-                       prior_precision=prior_q)
+                       prior_precision=prior_q, info_ref=info_ref)
             t_track = tr.seconds
+            if tr.status == "ok" and np.isfinite(tr.rot_info):
+                self._rot_info.append(tr.rot_info)
+                weak = info_ref is not None and tr.rot_info < self.tcfg.map_min_info * info_ref
+                if weak and self._unmapped < self.tcfg.map_skip_max:
+                    self._unmapped += 1
+                    return self._finish(FrameResult(i, tr.viewmat, "tracked", tr, t_track))
+            self._unmapped = 0
             if tr.status == "diverged":
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat

@@ -1,0 +1,157 @@
+"""Levenberg-Marquardt pose solver of the tracker (``TrackerConfig.solver = "gn"``).
+
+The tracking loss (masked L1 on depth plus ``w_color`` times L1 on colour, and the odometry
+prior ``xi^T Q xi``) is minimised over the pose parameters p (the camera-frame se(3) increment
+``basis @ p``: 6 free or 3 planar) by damped Gauss-Newton steps. The L1 terms are reweighted as
+in IRLS (curvature 1 / max(|r|, eps) at residual r), and the residuals' Jacobian w.r.t. p comes
+from k forward-difference renders, since the rasterizer has no forward mode. See
+:class:`splatsearch.slam.TrackerConfig` for the settings and :func:`splatsearch.slam.track` for
+the caller.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+
+
+def make_gn_stage(cfg) -> Callable:
+    """The Levenberg-Marquardt stage for the tracker settings ``cfg`` (a ``TrackerConfig``).
+
+    Returns ``gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref)``
+    -> (p, loss, steps, trusted mask, last loss, rot_info), run inside the tracker's jit: p (k,)
+    the start, ``fn`` = (mask_at, loss, value_and_grad of loss, residual) of one image level
+    (rgb (H, W, 3), depth (H, W) m), ``pw`` (6, 6) the prior's precision on xi, ``info_ref`` the
+    usual rotation information (0: no information weighting); ``lr_scale`` is unused.
+    """
+    w_c = cfg.w_color
+    h_fd = cfg.gn_fd_step
+    eps = jnp.array([cfg.gn_eps_depth] + [cfg.gn_eps_color] * 3, jnp.float32)
+    step_tol = cfg.gn_step_tol
+    loss_tol = cfg.gn_loss_tol
+    eps_rel = cfg.gn_eps_rel
+    refresh = cfg.gn_refresh
+    info_max = cfg.prior_info_max
+
+    def _lm_delta(Hm, g, lam):
+        """The damped step -(Hm + lam diag(Hm))^-1 g; a non-finite component becomes 0."""
+        A = Hm + lam * jnp.diag(jnp.diag(Hm)) + 1e-9 * jnp.eye(Hm.shape[0], dtype=Hm.dtype)
+        delta = -jnp.linalg.solve(A, g)
+        return jnp.where(jnp.isfinite(delta), delta, 0.0)
+
+    def _fixed_metric(p, n_iters, vg, args, Hd, Pp, mf, L0, g0):
+        """Levenberg-Marquardt steps from p (loss L0, gradient g0) with the data metric ``Hd``
+        formed once and the exact gradient of the loss (the rasterizer's pose-only backward) after
+        every accepted step: one forward + backward per step instead of k + 1 forwards, and the
+        fixed point is the loss's own minimum whatever the metric's error.
+
+        The IRLS weights are about 1 / (``gn_eps_rel`` x the mean |residual|) for most pixels, so
+        the data metric grows as the data loss falls: ``Hd`` is scaled by the data loss where it
+        was formed over the current one (without this, a start far from the minimum leaves a
+        metric several times too flat near it, and steps overshoot and are rejected)."""
+        Ld0 = jnp.maximum(L0 - p @ Pp @ p, 1e-12)
+
+        def cond(c):
+            return (c[0] < n_iters) & ~c[-1]
+
+        def body(c):
+            it, p, L, g, _, lam, done = c
+            Ld = jnp.maximum(L - p @ Pp @ p, 1e-12)
+            Hm = Hd * jnp.clip(Ld0 / Ld, 1.0, 100.0) + 2.0 * Pp
+            delta = _lm_delta(Hm, jnp.where(jnp.isfinite(g), g, 0.0), lam)
+            L_new, g_new = vg(p + delta, *args)
+            accept = L_new < L
+            small = (jnp.max(jnp.abs(delta)) < step_tol) | (accept & (L - L_new < loss_tol * L))
+            p, L, g = (jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L), jnp.where(accept, g_new, g))
+            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
+            return it + 1, p, L, g, Hm, lam, small | (lam > 1e6)
+
+        c = (jnp.int32(0), p, L0, g0, Hd, jnp.float32(1e-4), jnp.asarray(False))
+        k, p, L, _, _, _, _ = jax.lax.while_loop(cond, body, c)
+        return p, L, k, mf, L
+
+    def rotation_info(Hd, k_dim):
+        """The image's information on the rotation once the translation is free: the Schur
+        complement of the translation block of the data metric (planar: the yaw's; 6 DoF: the
+        smallest eigenvalue of the 3 x 3 rotation block's)."""
+        nr = 1 if k_dim == 3 else 3
+        Hrr, Hrt, Htt = Hd[:nr, :nr], Hd[:nr, nr:], Hd[nr:, nr:]
+        M = Hrr - Hrt @ jnp.linalg.solve(Htt + 1e-12 * jnp.eye(Htt.shape[0], dtype=Htt.dtype), Hrt.T)
+        return M[0, 0] if nr == 1 else jnp.linalg.eigvalsh(M)[0]
+
+    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref):
+        """Levenberg-Marquardt from p on one level, same loss and trusted pixels as the Adam stage.
+
+        The L1 terms are reweighted (IRLS): at residual r the quadratic model of |r| has curvature
+        1 / max(|r|, eps) and slope sign(r), which majorises |r|, so a step that lowers the model
+        lowers the loss while the linearisation holds. The Jacobian of the rendered depth and
+        colour w.r.t. the k pose parameters comes from k forward-difference renders (the
+        rasterizer has no forward mode); a rejected step raises the damping and reuses it."""
+        mask_at, loss, vg, residual = fn
+        k_dim = p.shape[0]
+        r0, mf = residual(p, margs, rgb, depth, vm_ref, basis, with_mask=True)
+        n = jnp.maximum(mf.sum(), 1.0)
+        a = mf[..., None] * jnp.array([1.0, w_c, w_c, w_c], jnp.float32) / n  # (H, W, 4) L1 weights
+
+        def data_eq(p, r):
+            cols = [(residual(p + h_fd * jnp.eye(k_dim, dtype=p.dtype)[j], margs, rgb, depth, vm_ref, basis) - r)
+                    / h_fd for j in range(k_dim)]
+            J = jnp.stack(cols, -1)  # (H, W, 4, k)
+            ar = jnp.abs(r)
+            scale = jnp.sum(ar * mf[..., None], (0, 1)) / n  # mean |residual| per channel
+            w = a / jnp.maximum(ar, jnp.maximum(eps, eps_rel * scale))
+            return jnp.einsum("hwck,hwc,hwcl->kl", J, w, J), jnp.einsum("hwck,hwc->k", J, a * jnp.sign(r))
+
+        Hd0, gd0 = data_eq(p, r0)
+        Ld0 = jnp.sum(a * jnp.abs(r0))
+        # per trusted-pixel share of the image, independent of the residuals' size (the IRLS
+        # weights scale as 1 / mean |r|)
+        info = rotation_info(Hd0, k_dim) * Ld0 * mf.mean()
+        if info_max > 1:  # the image fixes the rotation less than usual: trust the odometry more
+            f = jnp.where(info_ref > 0, jnp.clip(info_ref / jnp.maximum(info, 1e-30), 1.0, info_max), 1.0)
+            sq = jnp.concatenate([jnp.full(3, jnp.sqrt(f)), jnp.ones(3)]).astype(pw.dtype)
+            pw = pw * sq[:, None] * sq[None, :]
+        Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
+
+        def value(p, r):
+            return jnp.sum(a * jnp.abs(r)) + p @ Pp @ p
+
+        def normal_eq(p, r):
+            Hd, gd = data_eq(p, r)
+            return Hd, gd + 2.0 * Pp @ p
+
+        L0 = value(p, r0)
+        g0 = gd0 + 2.0 * Pp @ p
+
+        if not refresh:  # the first step's gradient is the difference quotients'
+            return (*_fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), Hd0, Pp, mf, L0, g0),
+                    info)
+        H0 = Hd0 + 2.0 * Pp
+
+        def cond(c):
+            it, _, _, _, _, _, _, done = c
+            return (it < n_iters) & ~done
+
+        def body(c):
+            it, p, L, r, Hm, g, lam, done = c
+            delta = _lm_delta(Hm, g, lam)
+            p_new = p + delta
+            r_new = residual(p_new, margs, rgb, depth, vm_ref, basis)
+            L_new = value(p_new, r_new)
+            accept = L_new < L  # NaN compares False
+            Hn, gn = jax.lax.cond(accept, lambda: normal_eq(p_new, r_new), lambda: (Hm - 2.0 * Pp, g))
+            Hn = Hn + 2.0 * Pp
+            small = (jnp.max(jnp.abs(delta)) < step_tol) | (accept & (L - L_new < loss_tol * L))
+            p, L, r = (jnp.where(accept, p_new, p), jnp.where(accept, L_new, L),
+                       jnp.where(accept, r_new, r))
+            lam = jnp.where(accept, lam * 0.3, lam * 10.0)
+            done = small | (lam > 1e6)
+            return it + 1, p, L, r, Hn, gn, lam, done
+
+        c = (jnp.int32(0), p, L0, r0, H0, g0, jnp.float32(1e-4), jnp.asarray(False))
+        k, p, L, _, _, _, _, _ = jax.lax.while_loop(cond, body, c)
+        return p, L, k, mf, L, info
+
+    return gn_stage
