@@ -35,6 +35,11 @@ def _ints(text: str) -> tuple[int, ...]:
     return tuple(out)
 
 
+def _ints_or_none(text: str) -> tuple[int, ...]:
+    """Like :func:`_ints`, and "none" -> ()."""
+    return () if text.strip().lower() == "none" else _ints(text)
+
+
 def _scenarios(text: str) -> tuple[str, ...]:
     from ..convoi.scenario_names import SCENARIOS
 
@@ -49,7 +54,8 @@ def register_olivia(social_subparsers) -> None:
     """Add the ``data``, ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
     from splatsearch.parallel import add_executor_args
 
-    from ..convoi.scenario_names import LLU_ADAPT_SEEDS, LLU_TEST_SEEDS, TABLE_ONE_SEEDS, THESIS_SCENARIOS
+    from ..convoi.scenario_names import (DOOR_TRAIN_SEEDS, LLU_ADAPT_SEEDS, LLU_TEST_SEEDS, TABLE_ONE_SEEDS,
+                                         THESIS_SCENARIOS)
 
     d = social_subparsers.add_parser("data", help="expert episodes + renders -> OUT/samples_{train,val}.npz, in "
                                                   "parallel (then `social train --out OUT` uses them)")
@@ -57,6 +63,13 @@ def register_olivia(social_subparsers) -> None:
     d.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS, help="comma list (default: Table I's four)")
     d.add_argument("--train-seeds", type=_ints, default=tuple(range(6)), help="e.g. 0-5 (default) or 0,3")
     d.add_argument("--val-seeds", type=_ints, default=(50,), help="default 50")
+    d.add_argument("--door-seeds", type=_ints_or_none, default=DOOR_TRAIN_SEEDS,
+                   help=f"doorway scenes (sampled door widths) added to the training split, as social train does "
+                        f"(default: {DOOR_TRAIN_SEEDS[0]}-{DOOR_TRAIN_SEEDS[-1]}; 'none': no doorways)")
+    # a literal (dataset.HEADON_DOOR_SEEDS's module pulls in JAX) kept equal to it by a test
+    d.add_argument("--headon-door-seeds", type=_ints_or_none, default=tuple(range(220, 232)),
+                   help="head-on doorway scenes (the person meets the robot just past the door) added to the "
+                        "training split, as social train does (default: 220-231; 'none': none)")
     d.add_argument("--every", type=int, default=5, help="sample an expert state every N sim steps")
     d.add_argument("--augment", type=int, default=1, help="displaced copies per expert state")
     d.add_argument("--resume", action="store_true", help="keep the finished episodes in OUT/parts/, run the rest")
@@ -142,10 +155,19 @@ def cmd_data(args) -> int:
         raise SystemExit("--every must be >= 1 and --augment >= 0")
     if set(args.train_seeds) & set(args.val_seeds):
         raise SystemExit("train and validation seeds overlap")
+    from ..convoi.scenario_names import LLU_ADAPT_SEEDS, LLU_TEST_SEEDS
+
+    held = (set(args.door_seeds) | set(args.headon_door_seeds)) & (set(LLU_ADAPT_SEEDS) | set(LLU_TEST_SEEDS))
+    if held:
+        raise SystemExit(f"--door-seeds / --headon-door-seeds {sorted(held)} are the held-out doorway's "
+                         "adaptation or test seeds")
+    if "doorway" in args.scenarios and set(args.train_seeds) & set(args.door_seeds):
+        raise SystemExit("--door-seeds overlap --train-seeds of the doorway scenario")
     with executor_from_args(args) as ex, _progress(args.no_progress) as prog:
         sizes = build_datasets(args.out, args.scenarios, {"train": args.train_seeds, "val": args.val_seeds},
                                every=args.every, augment=args.augment, executor=ex, resume=args.resume,
-                               on_update=_job_task(prog, "expert episodes"), vary_geometry=True)
+                               on_update=_job_task(prog, "expert episodes"), vary_geometry=True,
+                               door_seeds=args.door_seeds, headon_door_seeds=args.headon_door_seeds)
     Console().print(f"{sizes['train']} train / {sizes['val']} val samples -> {args.out}/samples_train.npz, "
                     "samples_val.npz")
     return 0

@@ -39,18 +39,24 @@ def _prepare(executor) -> None:
 
 # -- expert data ---------------------------------------------------------------------------------
 
-def data_job(scenario: str, seed: int, every: int, augment: int, vary_geometry: bool = False):
-    """Samples of one expert episode (exactly :func:`build_dataset` on one scenario and seed)."""
+def data_job(scenario: str, seed: int, every: int, augment: int, vary_geometry: bool = False, headon: bool = False):
+    """Samples of one expert episode (exactly :func:`build_dataset` on one scenario and seed;
+    ``headon``: the doorway of that seed as a :func:`~splatsearch.social.olivia.dataset.headon_doorway`)."""
     from .dataset import build_dataset
 
-    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=vary_geometry)
+    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=vary_geometry, headon=headon)
 
 
 def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Sequence[int]], *, every: int,
                    augment: int, executor, resume: bool = False, on_update: Callable | None = None,
-                   vary_geometry: bool = False) -> dict:
+                   vary_geometry: bool = False, door_seeds: Sequence[int] = (),
+                   headon_door_seeds: Sequence[int] = ()) -> dict:
     """``OUT/samples_{split}.npz`` for every split in ``splits`` (``{"train": seeds, "val": seeds}``),
     the files ``social train --out OUT`` reuses. Returns ``{split: number of samples}``.
+    ``door_seeds`` / ``headon_door_seeds``: doorway scenes (sampled widths) and head-on doorway
+    scenes (:func:`~splatsearch.social.olivia.dataset.headon_doorway`) appended to the "train"
+    split after its scenarios, in the order ``social train`` builds them
+    (``TrainConfig.door_seeds``, ``TrainConfig.headon_door_seeds``).
 
     Raises RuntimeError naming the failed jobs when any failed (the finished parts stay in
     ``OUT/parts/`` for a ``resume``); ``on_update(counts)`` follows the jobs."""
@@ -60,21 +66,31 @@ def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Seq
 
     parts = os.path.join(out_dir, "parts")
     os.makedirs(parts, exist_ok=True)
-    order = [(split, name, int(seed)) for split, seeds in splits.items() for name in scenarios for seed in seeds]
+    if (door_seeds or headon_door_seeds) and "train" not in splits:
+        raise ValueError("door_seeds / headon_door_seeds go into the 'train' split, which splits lacks")
+    order = []  # (split, scenario, seed, head-on), in social train's order of concatenation
+    for split, seeds in splits.items():
+        order += [(split, name, int(seed), False) for name in scenarios for seed in seeds]
+        if split == "train":
+            order += [(split, "doorway", int(seed), False) for seed in door_seeds]
+            order += [(split, "doorway", int(seed), True) for seed in headon_door_seeds]
 
-    def path(split, name, seed):
-        geo = "-geo" if vary_geometry else ""  # never resume from parts of the other geometry
-        return os.path.join(parts, f"{split}-{name}-{seed}-every{every}-aug{augment}{geo}.npz")
+    def path(split, name, seed, headon):
+        geo = "-geo" if vary_geometry or headon else ""  # never resume from parts of the other geometry
+        kind = "-headon" if headon else ""
+        return os.path.join(parts, f"{split}-{name}{kind}-{seed}-every{every}-aug{augment}{geo}.npz")
 
-    jobs = [Job(f"{split}/{name}/{seed}", data_job, (name, seed, every, augment, vary_geometry))
-            for split, name, seed in order
-            if not (resume and os.path.exists(path(split, name, seed)))]
+    keys = {f"{split}/{name}{'-headon' if h else ''}/{seed}": (split, name, seed, h) for split, name, seed, h in order}
+    if len(keys) != len(order):
+        raise ValueError("a (split, scenario, seed) appears twice: door seeds must differ from the doorway's train seeds")
+    jobs = [Job(key, data_job, (name, seed, every, augment, vary_geometry, h))
+            for key, (split, name, seed, h) in keys.items()
+            if not (resume and os.path.exists(path(split, name, seed, h)))]
     _prepare(executor)
     failed = []
     for o in executor.run(jobs, on_update):
-        split, name, seed = o.key.split("/")
         if o.ok:
-            o.value.save(path(split, name, int(seed)))
+            o.value.save(path(*keys[o.key]))
         else:
             failed.append(f"{o.key}: {o.error.strip().splitlines()[-1]}")
     if failed:
@@ -82,7 +98,7 @@ def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Seq
                            + "\n".join(failed))
     sizes = {}
     for split in splits:
-        s = Samples.concat([Samples.load(path(sp, n, k)) for sp, n, k in order if sp == split])
+        s = Samples.concat([Samples.load(path(sp, n, k, h)) for sp, n, k, h in order if sp == split])
         s.save(os.path.join(out_dir, f"samples_{split}.npz"))
         sizes[split] = len(s)
     return sizes
