@@ -74,6 +74,8 @@ class OliviaConfig:
     # constant (s; 0: constant velocity)
     oncoming_yield: bool = True
     cross_tau: float = 1.0
+    oncoming_time: float = 4.0  # s: a person counts as head-on when it can meet the robot within this time
+    route_fallback: bool = True  # when every plan runs into the map, the NC follows the static route
 
 
 N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
@@ -195,6 +197,17 @@ class OliviaNav:
                           int(self.db.actions[j]), np.asarray(e_i), np.asarray(votes), float(sim))
 
 
+def route_ahead(path: np.ndarray, xy: np.ndarray, n: int, step: float = 0.24) -> np.ndarray:
+    """(1 + n, 2) world: ``xy`` (2,), then ``n`` points of the route ``path`` (M, 2) every
+    ``step`` m (0.6 m/s x 0.4 s) from the route point nearest to ``xy`` (held at its end)."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    i = int(np.argmin(np.linalg.norm(path - np.asarray(xy, np.float64), axis=1)))
+    q = np.minimum(s[i] + step * np.arange(1, n + 1), s[-1])
+    pts = np.stack([np.interp(q, s, path[:, 0]), np.interp(q, s, path[:, 1])], -1)
+    return np.vstack([np.asarray(xy, np.float64)[None], pts])
+
+
 def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | None = None,
                        buffer: LLUBuffer | None = None, buffer_every: int = 5,
                        sf: pedsim.SocialForceConfig | None = None, trace: list | None = None) -> EpisodeResult:
@@ -245,6 +258,10 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 trace.append({"t": t, "pose": pose.copy(), "cand": cand, "logits": np.asarray(res.logits)} | parts)
             k = int(np.argmax(score))
             traj_world = np.vstack([pose[None, :2], cand[k]])
+            if cfg.route_fallback and clr is not None and np.all(parts["map"] > 0):
+                # every plan runs into the map (a door post ahead): the NC follows the static
+                # route instead; following the least bad plan, it pushed into the post for good
+                traj_world = route_ahead(path, pose[:2], HORIZON)
             if cfg.arrive_radius > 0 and np.linalg.norm(pose[:2] - scn.goal) < cfg.arrive_radius:
                 # the last metre: straight at the goal (plans trained on paths that end there
                 # do not turn back to a goal overshot)

@@ -33,7 +33,8 @@ from .features import FUTURE_STRIDE
 WALL_MARGIN = 0.05  # m: the clearance a plan keeps from the map (the NC cuts corners by about this)
 ONCOMING_CONE = 0.44  # rad (25°): the walker's `oncoming_cone`
 ONCOMING_SPEED = 0.3  # m/s: slower people are not walking at the robot
-ONCOMING_RADIUS = 4.0  # m: farther people have time to change their way
+ONCOMING_RADIUS = 4.0  # m: farther people have time to change their way (the LLU buffer's tag)
+ROBOT_SPEED = 0.6  # m/s: the robot's top speed (the follower's and the walker's limit)
 
 
 def _times(H: int) -> np.ndarray:
@@ -64,11 +65,14 @@ def consistency_cost(trajs_world: np.ndarray, prev_world: np.ndarray | None, ela
 
 
 def oncoming_mask(pose: np.ndarray, people: np.ndarray, people_vel: np.ndarray, cone: float = ONCOMING_CONE,
-                  radius: float = ONCOMING_RADIUS, min_speed: float = ONCOMING_SPEED) -> np.ndarray:
+                  radius: float = ONCOMING_RADIUS, min_speed: float = ONCOMING_SPEED,
+                  meet_time: float = 0.0, robot_speed: float = ROBOT_SPEED) -> np.ndarray:
     """(P,) bool: which of the people seen, ``people`` (P, 2) world moving at ``people_vel``
     (P, 2) m/s, are ahead of the robot at ``pose`` (3,) (x, y, yaw) (within 60° of its heading
     and ``radius`` m) and walk toward it within ``cone`` rad of head-on, faster than
-    ``min_speed`` m/s (closing on it)."""
+    ``min_speed`` m/s (closing on it). With ``meet_time`` > 0 (s) the distance is instead
+    ``meet_time x`` (their speed toward the robot + ``robot_speed``): close enough to meet it
+    within that time (a plan's horizon)."""
     people = np.asarray(people, np.float64).reshape(-1, 2)
     vel = np.asarray(people_vel, np.float64).reshape(-1, 2)
     if len(people) == 0:
@@ -80,6 +84,8 @@ def oncoming_mask(pose: np.ndarray, people: np.ndarray, people_vel: np.ndarray, 
     ahead = rel @ heading > 0.5 * dist
     to_robot = -rel / np.maximum(dist[:, None], 1e-6)
     cos_to = np.sum(vel * to_robot, -1) / np.maximum(speed, 1e-6)
+    if meet_time > 0:
+        radius = meet_time * (speed * np.clip(cos_to, 0.0, None) + robot_speed)
     return ahead & (dist < radius) & (speed > min_speed) & (cos_to > np.cos(cone))
 
 
@@ -165,14 +171,15 @@ def selection_scores(logits: np.ndarray, cand: np.ndarray, pose: np.ndarray, pre
     s ago; people (P, 2), people_vel (P, 2) m/s: the people in line of sight; clearance
     (K, horizon) m or None: the map's clearance at the plans' poses; cfg: an
     :class:`~splatsearch.social.olivia.planner.OliviaConfig` (``consistency``, ``safety``,
-    ``safety_margin``, ``pass_right``, ``oncoming_yield``, ``cross_tau``).
+    ``safety_margin``, ``pass_right``, ``oncoming_yield``, ``cross_tau``, ``oncoming_time``).
 
     Returns ``{"score": (K,), "consistency", "safety", "side", "map": (K,) penalties already
     weighted, "oncoming": number of head-on people}``; the plan picked is ``argmax(score)``."""
     K = len(logits)
     people = np.asarray(people, np.float64).reshape(-1, 2)
     people_vel = np.asarray(people_vel, np.float64).reshape(-1, 2)
-    on = oncoming_mask(pose, people, people_vel)
+    # head-on: anyone who can meet the robot within a plan's horizon
+    on = oncoming_mask(pose, people, people_vel, meet_time=cfg.oncoming_time)
     zero = np.zeros(K)
     parts = {"consistency": zero, "safety": zero, "side": zero, "map": zero, "oncoming": int(np.sum(on))}
     if cfg.consistency > 0 and prev_world is not None:
