@@ -72,3 +72,21 @@ def test_the_forecast_bounds_a_head_on_persons_drift_across():
     assert np.all(np.linalg.norm(off, axis=-1) <= np.linalg.norm(across) * 1.0 + 1e-9)
     np.testing.assert_allclose((f[:, 0] - people[0]) @ u, T * (vel[0] @ u))  # along: constant velocity
     np.testing.assert_allclose(forecast_people(people, vel, HORIZON, POSE, on, cross_tau=0.0), cv)
+
+
+def test_head_on_reaches_as_far_as_a_meeting_within_the_horizon():
+    people, vel = np.array([[5.5, 0.3]]), np.array([[-0.9, -0.1]])
+    assert not oncoming_mask(POSE, people, vel)[0]  # beyond the fixed 4 m
+    assert oncoming_mask(POSE, people, vel, meet_time=4.0)[0]  # (0.9 + 0.6) m/s x 4 s = 6 m
+    assert not oncoming_mask(POSE, people * 1.5, vel, meet_time=4.0)[0]
+
+
+def test_route_ahead_follows_the_route_from_its_nearest_point():
+    from splatsearch.social.olivia.planner import route_ahead
+
+    path = np.stack([np.linspace(0, 10, 101), np.zeros(101)], -1)
+    r = route_ahead(path, np.array([4.0, -0.9]), HORIZON)
+    assert r.shape == (HORIZON + 1, 2) and np.allclose(r[0], [4.0, -0.9])
+    np.testing.assert_allclose(r[1:, 0], 4.0 + 0.24 * np.arange(1, HORIZON + 1))
+    assert np.allclose(r[1:, 1], 0.0)
+    np.testing.assert_allclose(route_ahead(path, np.array([9.9, 0.0]), 3)[1:], [[10.0, 0.0]] * 3)
