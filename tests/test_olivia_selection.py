@@ -90,3 +90,15 @@ def test_route_ahead_follows_the_route_from_its_nearest_point():
     np.testing.assert_allclose(r[1:, 0], 4.0 + 0.24 * np.arange(1, HORIZON + 1))
     assert np.allclose(r[1:, 1], 0.0)
     np.testing.assert_allclose(route_ahead(path, np.array([9.9, 0.0]), 3)[1:], [[10.0, 0.0]] * 3)
+
+
+def test_eval_refuses_a_negative_route_berth(tmp_path):
+    import argparse
+
+    from splatsearch.social.olivia.cli import register_olivia
+
+    parser = argparse.ArgumentParser()
+    register_olivia(parser.add_subparsers(dest="cmd"))
+    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "none.npz"), "--route-berth", "-1"])
+    assert args.func(args) == 2
+    assert parser.parse_args(["eval"]).route_berth is None  # the checkpoint's setting

@@ -126,6 +126,10 @@ def register_olivia(social_subparsers) -> None:
     e.add_argument("--baseline-cache", default=None, metavar="DIR",
                    help="cache the reference, DWA and CoNVOI+DWA episodes in DIR, keyed by scenario, seed, geometry "
                         "and a SHA-256 of the convoi sources, so later evaluations (other trainings) reuse them")
+    e.add_argument("--route-berth", type=float, default=None, metavar="M",
+                   help="plan selection: the route (goal features, fallback) keeps M metres from people standing "
+                        "still and never crosses a standing group, as the walker's does (default: the checkpoint's, "
+                        "0 = the walls-only path)")
     add_executor_args(e, default_workers=None)
     e.set_defaults(func=cmd_eval)
 
@@ -222,7 +226,19 @@ def cmd_eval(args) -> int:
         except (ValueError, OSError) as exc:
             console.print(f"[red]--baseline-cache: {exc}[/]")
             return 2
+    overrides = {}
+    if args.route_berth is not None:
+        if not args.route_berth >= 0:
+            console.print("[red]--route-berth must be >= 0 metres[/]")
+            return 2
+        overrides["route_berth"] = float(args.route_berth)
     planner = load_planner(args.checkpoint)
+    if overrides:
+        import dataclasses
+
+        from .planner import OliviaNav
+
+        planner = OliviaNav(planner.params, planner.db, dataclasses.replace(planner.cfg, **overrides))
     out = args.out or os.path.dirname(os.path.abspath(args.checkpoint))
     os.makedirs(out, exist_ok=True)
     baselines = tuple(b for b in args.baselines.split(",") if b)
@@ -233,13 +249,14 @@ def cmd_eval(args) -> int:
     if set(args.seeds) & set(range(0, 100)):
         console.print("[yellow]warning: seeds below 100 overlap the default training/validation seeds[/]")
     t0 = time.perf_counter()
-    result: dict = {"checkpoint": args.checkpoint, "seeds": list(args.seeds)}
+    result: dict = {"checkpoint": args.checkpoint, "seeds": list(args.seeds), "overrides": overrides}
     with _progress(args.no_progress) as prog, executor_from_args(args) as ex:
         md = ""
         if not args.no_table1:
             rows = table_one_parallel(args.checkpoint, args.scenarios, args.seeds, baselines, variants, executor=ex,
                                       out_dir=out, resume=args.resume, on_update=_job_task(prog, "Table I"),
-                                      log=console.log, cache_dir=cache.directory if cache else None)
+                                      log=console.log, cache_dir=cache.directory if cache else None,
+                                      overrides=overrides)
             result["table1"] = rows
             md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
         if not args.no_table2:

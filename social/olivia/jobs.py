@@ -123,11 +123,12 @@ def _planner(checkpoint: str, stamp: tuple):
 
 
 def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, baselines: Sequence[str],
-                  variants: Sequence[str], cache_dir: str | None = None) -> dict:
+                  variants: Sequence[str], cache_dir: str | None = None, overrides: tuple = ()) -> dict:
     """Metrics of one (scenario, seed) for Table I: ``{method label: episode metrics}``, in the
     order :func:`~splatsearch.social.olivia.train.table_one` averages them. ``cache_dir``: a
     :class:`~splatsearch.social.olivia.baseline_cache.BaselineCache` directory for the reference
-    and baseline episodes (shared by every worker on this machine)."""
+    and baseline episodes (shared by every worker on this machine). ``overrides``: ``(name, value)``
+    pairs replacing fields of the checkpoint's :class:`~splatsearch.social.olivia.planner.OliviaConfig`."""
     from .baseline_cache import BaselineCache
     from .planner import VARIANT_LABELS, run_olivia_episode
     from .train import episode_metrics, run_baseline
@@ -135,6 +136,12 @@ def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, basel
     from ..convoi.scenarios import make_scenario
 
     planner = _planner(checkpoint, stamp)
+    if overrides:
+        import dataclasses
+
+        from .planner import OliviaNav
+
+        planner = OliviaNav(planner.params, planner.db, dataclasses.replace(planner.cfg, **dict(overrides)))
     cache = BaselineCache(cache_dir) if cache_dir else None
     scn = make_scenario(scenario, seed)
     ref = run_baseline(scn, REFERENCE, cache)
@@ -150,12 +157,13 @@ def table_one_job(checkpoint: str, stamp: tuple, scenario: str, seed: int, basel
 def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequence[int], baselines: Sequence[str],
                        variants: Sequence[str], *, executor, out_dir: str, resume: bool = False,
                        on_update: Callable | None = None, log: Callable[[str], None] | None = None,
-                       cache_dir: str | None = None) -> list[dict]:
+                       cache_dir: str | None = None, overrides: dict | None = None) -> list[dict]:
     """:func:`~splatsearch.social.olivia.train.table_one`'s rows, one job per (scenario, seed).
     Finished jobs go to ``out_dir/table1_jobs.json`` at once; ``resume`` reuses those run with the
     same checkpoint (path, size, mtime), baselines and variants. Raises RuntimeError naming the
     failed jobs (the finished ones stay saved). ``cache_dir``: reference and baseline episodes are
-    read from / written to this :class:`~splatsearch.social.olivia.baseline_cache.BaselineCache`."""
+    read from / written to this :class:`~splatsearch.social.olivia.baseline_cache.BaselineCache`.
+    ``overrides``: OliviaConfig fields replaced in every job (part of what a resume must match)."""
     log = log or logger.info  # a caller may pass console.log; the library logs by default
     from splatsearch.io import atomic_write_bytes
     from splatsearch.parallel import Job
@@ -165,7 +173,10 @@ def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequenc
     checkpoint = os.path.abspath(checkpoint)
     st = os.stat(checkpoint)
     stamp = (st.st_size, int(st.st_mtime_ns))
+    ov = tuple(sorted((overrides or {}).items()))
     setup = {"checkpoint": checkpoint, "stamp": list(stamp), "baselines": list(baselines), "variants": list(variants)}
+    if ov:
+        setup["overrides"] = [list(x) for x in ov]
     store = os.path.join(out_dir, "table1_jobs.json")
     done: dict = {}
     if resume and os.path.exists(store):
@@ -174,7 +185,7 @@ def table_one_parallel(checkpoint: str, scenarios: Sequence[str], seeds: Sequenc
         if saved.get("setup") == setup:
             done = saved["jobs"]
     jobs = [Job(f"{name}/{seed}", table_one_job, (checkpoint, stamp, name, int(seed), tuple(baselines), tuple(variants),
-                                                       os.path.abspath(cache_dir) if cache_dir else None))
+                                                       os.path.abspath(cache_dir) if cache_dir else None, ov))
             for name in scenarios for seed in seeds if f"{name}/{seed}" not in done]
     _prepare(executor)
     failed = []

@@ -76,6 +76,9 @@ class OliviaConfig:
     cross_tau: float = 1.0
     oncoming_time: float = 4.0  # s: a person counts as head-on when it can meet the robot within this time
     route_fallback: bool = True  # when every plan runs into the map, the NC follows the static route
+    # m: the route (goal features, fallback) keeps this far from people standing still and never
+    # crosses a standing group, as the walker's does (0: the walls-only shortest path, as trained)
+    route_berth: float = 0.0
 
 
 N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
@@ -224,7 +227,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     caps, valid = jnp.asarray(caps), jnp.asarray(valid)
     act = jnp.asarray(scn.peds.active)
     field = scn.field()
-    path = scn.global_path()
+    path = scn.global_path(avoid_standing=cfg.route_berth) if cfg.route_berth > 0 else scn.global_path()
     seed_key = jax.random.PRNGKey(scn.seed)
     n = scn.max_steps if max_steps is None else int(max_steps)
     pose = np.asarray(scn.start, np.float32)
