@@ -20,7 +20,10 @@ LOGITS = np.array([0.0, -1.5])  # the networks prefer straight on
 OLD = dataclasses.replace(OliviaConfig(), oncoming_yield=False, cross_tau=0.0)  # constant velocity, symmetric
 
 
-def _pick(people, vel, cfg=OliviaConfig(), cand=(STRAIGHT, ASIDE)):
+NEW = dataclasses.replace(OliviaConfig(), cross_tau=1.0)  # the head-on forecast (opt-in)
+
+
+def _pick(people, vel, cfg=NEW, cand=(STRAIGHT, ASIDE)):
     p = selection_scores(LOGITS, np.stack(cand), POSE, PREV, 0.2, np.asarray(people, float).reshape(-1, 2),
                          np.asarray(vel, float).reshape(-1, 2), None, cfg)
     return int(np.argmax(p["score"])), p
@@ -33,8 +36,10 @@ def test_sidestep_is_picked_for_a_person_coming_head_on():
     assert p["oncoming"] == 1 and k == 1
     # with a constant-velocity forecast and a symmetric commitment it stayed in its lane
     assert _pick(*diag, cfg=OLD)[0] == 0
-    # straight at the robot: the sidestep too
+    # straight at the robot: the sidestep too, also with the default constant-velocity forecast
     assert _pick([[3.5, 0.0]], [[-1.0, 0.0]])[0] == 1
+    assert _pick([[3.5, 0.0]], [[-1.0, 0.0]], cfg=OliviaConfig())[0] == 1
+    assert _pick([[3.5, 0.0]], [[-1.0, 0.0]], cfg=OLD)[0] == 0  # held in its lane by the commitment
 
 
 @pytest.mark.parametrize("people, vel", [
@@ -102,3 +107,5 @@ def test_eval_refuses_a_negative_route_berth(tmp_path):
     args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "none.npz"), "--route-berth", "-1"])
     assert args.func(args) == 2
     assert parser.parse_args(["eval"]).route_berth is None  # the checkpoint's setting
+    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "none.npz"), "--cross-tau", "-0.5"])
+    assert args.func(args) == 2

@@ -130,6 +130,10 @@ def register_olivia(social_subparsers) -> None:
                    help="plan selection: the route (goal features, fallback) keeps M metres from people standing "
                         "still and never crosses a standing group, as the walker's does (default: the checkpoint's, "
                         "0 = the walls-only path)")
+    e.add_argument("--cross-tau", type=float, default=None, metavar="S",
+                   help="plan selection: time constant (s) with which the drift across the line to the robot of a "
+                        "person walking at it head-on decays in the safety forecast (default: the checkpoint's; "
+                        "0 = constant velocity)")
     add_executor_args(e, default_workers=None)
     e.set_defaults(func=cmd_eval)
 
@@ -232,6 +236,11 @@ def cmd_eval(args) -> int:
             console.print("[red]--route-berth must be >= 0 metres[/]")
             return 2
         overrides["route_berth"] = float(args.route_berth)
+    if args.cross_tau is not None:
+        if not args.cross_tau >= 0:
+            console.print("[red]--cross-tau must be >= 0 seconds[/]")
+            return 2
+        overrides["cross_tau"] = float(args.cross_tau)
     planner = load_planner(args.checkpoint)
     if overrides:
         import dataclasses

@@ -69,11 +69,12 @@ class OliviaConfig:
     view_gate: float = 0.95  # the same for D_T entries an LLU update keyed by their views' E_I (image to image)
     arrive_radius: float = 1.0  # m: within it the NC drives straight at the goal (0: off)
     # while someone walks at the robot head-on (selection.oncoming_mask): the consistency cost does
-    # not charge a plan's deviation to the right of the followed one (yielding), and the safety
-    # cost lets the part of their velocity across the line to the robot decay with this time
-    # constant (s; 0: constant velocity)
+    # not charge a plan's deviation to the right of the followed one (yielding), and, when
+    # cross_tau > 0 (s), the safety cost lets the part of their velocity across the line to the
+    # robot decay with that time constant. Off by default: on doorways where the person keeps
+    # walking diagonally past the door, that forecast sent the robot into their path (stop 39)
     oncoming_yield: bool = True
-    cross_tau: float = 1.0
+    cross_tau: float = 0.0
     oncoming_time: float = 4.0  # s: a person counts as head-on when it can meet the robot within this time
     route_fallback: bool = True  # when every plan runs into the map, the NC follows the static route
     # m: the route (goal features, fallback) keeps this far from people standing still and never
