@@ -331,3 +331,63 @@ def test_reference_walker_steps_aside_on_a_headon_training_doorway():
     plain = run_episode(make_scenario("doorway", 210, door_width=scn._cache["geometry"]["door_width"]), REFERENCE)
     pxy = np.asarray(plain.robot)[:, :2]
     assert (pxy[(pxy[:, 0] > 1.0) & (pxy[:, 0] < 5.0), 1] - scn.start[1]).min() > -0.5
+
+
+def test_social_data_builds_the_doorways_social_train_builds(tmp_path, monkeypatch):
+    """`social data` with its defaults builds the training split social train builds: the four
+    scenarios, then the doorways (sampled widths), then the head-on doorways, in that order."""
+    import argparse
+
+    from splatsearch.social.olivia import cli, train
+    from splatsearch.social.olivia.dataset import HEADON_DOOR_SEEDS, Samples
+
+    calls = []
+
+    def fake(scenarios, seeds, *, every=4, augment=1, progress=None, vary_geometry=False, headon=False, **_):
+        rows = [(SCEN.index(n), int(s), int(headon)) for n in scenarios for s in seeds]
+        calls.append((tuple(scenarios), tuple(seeds), vary_geometry, headon))
+        n = len(rows)
+        for i in range(n):
+            if progress is not None:
+                progress(i + 1, n, "x")
+        return Samples(np.zeros((n, 1, 1, 3), np.uint8), np.zeros((n, 1, 4), np.float32), np.ones((n, 1), bool),
+                       np.zeros((n, 2), np.float32), np.zeros((n, 1, 3), np.float32), np.zeros(n, np.int32),
+                       ["a"] * n, ["b"] * n, np.asarray([r[0] for r in rows], np.int32),
+                       np.asarray([r[1] for r in rows], np.int32), np.asarray([r[2] for r in rows], np.int32))
+
+    from splatsearch.social.convoi.scenario_names import SCENARIOS as SCEN
+
+    monkeypatch.setattr(dataset, "build_dataset", fake)
+    monkeypatch.setattr(train, "build_dataset", fake)
+    parser = argparse.ArgumentParser()
+    cli.register_olivia(parser.add_subparsers(dest="cmd"))
+    args = parser.parse_args(["data", "--out", str(tmp_path / "data"), "--workers", "1", "--no-progress"])
+    assert args.headon_door_seeds == HEADON_DOOR_SEEDS
+    assert args.func(args) == 0
+    got = Samples.load(str(tmp_path / "data" / "samples_train.npz"))
+    assert all(c[2] for c in calls)  # sampled geometry everywhere
+
+    class Stop(Exception):
+        pass
+
+    def stop(*a, **k):
+        raise Stop
+
+    monkeypatch.setattr(train, "assert_held_out", stop)
+    with pytest.raises(Stop):
+        train.train_olivia(str(tmp_path / "train"), train.TrainConfig())
+    want = Samples.load(str(tmp_path / "train" / "samples_train.npz"))
+    for k in ("scenario", "seed", "t"):
+        np.testing.assert_array_equal(getattr(got, k), getattr(want, k))
+    headon = got.t == 1
+    assert set(got.seed[headon]) == set(HEADON_DOOR_SEEDS)
+    door = (got.scenario == SCEN.index("doorway")) & ~headon
+    assert set(got.seed[door]) == set(train.TrainConfig().door_seeds)
+    # 'none' leaves them out; held-out seeds are refused
+    args = parser.parse_args(["data", "--out", str(tmp_path / "d2"), "--workers", "1", "--no-progress",
+                              "--door-seeds", "none", "--headon-door-seeds", "none"])
+    assert args.func(args) == 0
+    assert not np.any(Samples.load(str(tmp_path / "d2" / "samples_train.npz")).scenario == SCEN.index("doorway"))
+    args = parser.parse_args(["data", "--out", str(tmp_path / "d3"), "--workers", "1", "--headon-door-seeds", "505"])
+    with pytest.raises(SystemExit, match="held-out"):
+        args.func(args)

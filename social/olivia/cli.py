@@ -35,6 +35,11 @@ def _ints(text: str) -> tuple[int, ...]:
     return tuple(out)
 
 
+def _ints_or_none(text: str) -> tuple[int, ...]:
+    """Like :func:`_ints`, and "none" -> ()."""
+    return () if text.strip().lower() == "none" else _ints(text)
+
+
 def _scenarios(text: str) -> tuple[str, ...]:
     from ..convoi.scenario_names import SCENARIOS
 
@@ -49,7 +54,8 @@ def register_olivia(social_subparsers) -> None:
     """Add the ``data``, ``train`` and ``eval`` sub-subcommands (handlers set with ``set_defaults(func=...)``)."""
     from splatsearch.parallel import add_executor_args
 
-    from ..convoi.scenario_names import LLU_ADAPT_SEEDS, LLU_TEST_SEEDS, TABLE_ONE_SEEDS, THESIS_SCENARIOS
+    from ..convoi.scenario_names import (DOOR_TRAIN_SEEDS, LLU_ADAPT_SEEDS, LLU_TEST_SEEDS, TABLE_ONE_SEEDS,
+                                         THESIS_SCENARIOS)
 
     d = social_subparsers.add_parser("data", help="expert episodes + renders -> OUT/samples_{train,val}.npz, in "
                                                   "parallel (then `social train --out OUT` uses them)")
@@ -57,6 +63,13 @@ def register_olivia(social_subparsers) -> None:
     d.add_argument("--scenarios", type=_scenarios, default=THESIS_SCENARIOS, help="comma list (default: Table I's four)")
     d.add_argument("--train-seeds", type=_ints, default=tuple(range(6)), help="e.g. 0-5 (default) or 0,3")
     d.add_argument("--val-seeds", type=_ints, default=(50,), help="default 50")
+    d.add_argument("--door-seeds", type=_ints_or_none, default=DOOR_TRAIN_SEEDS,
+                   help=f"doorway scenes (sampled door widths) added to the training split, as social train does "
+                        f"(default: {DOOR_TRAIN_SEEDS[0]}-{DOOR_TRAIN_SEEDS[-1]}; 'none': no doorways)")
+    # a literal (dataset.HEADON_DOOR_SEEDS's module pulls in JAX) kept equal to it by a test
+    d.add_argument("--headon-door-seeds", type=_ints_or_none, default=tuple(range(220, 232)),
+                   help="head-on doorway scenes (the person meets the robot just past the door) added to the "
+                        "training split, as social train does (default: 220-231; 'none': none)")
     d.add_argument("--every", type=int, default=5, help="sample an expert state every N sim steps")
     d.add_argument("--augment", type=int, default=1, help="displaced copies per expert state")
     d.add_argument("--resume", action="store_true", help="keep the finished episodes in OUT/parts/, run the rest")
@@ -113,6 +126,14 @@ def register_olivia(social_subparsers) -> None:
     e.add_argument("--baseline-cache", default=None, metavar="DIR",
                    help="cache the reference, DWA and CoNVOI+DWA episodes in DIR, keyed by scenario, seed, geometry "
                         "and a SHA-256 of the convoi sources, so later evaluations (other trainings) reuse them")
+    e.add_argument("--route-berth", type=float, default=None, metavar="M",
+                   help="plan selection: the route (goal features, fallback) keeps M metres from people standing "
+                        "still and never crosses a standing group, as the walker's does (default: the checkpoint's, "
+                        "0 = the walls-only path)")
+    e.add_argument("--cross-tau", type=float, default=None, metavar="S",
+                   help="plan selection: time constant (s) with which the drift across the line to the robot of a "
+                        "person walking at it head-on decays in the safety forecast (default: the checkpoint's; "
+                        "0 = constant velocity)")
     add_executor_args(e, default_workers=None)
     e.set_defaults(func=cmd_eval)
 
@@ -142,10 +163,19 @@ def cmd_data(args) -> int:
         raise SystemExit("--every must be >= 1 and --augment >= 0")
     if set(args.train_seeds) & set(args.val_seeds):
         raise SystemExit("train and validation seeds overlap")
+    from ..convoi.scenario_names import LLU_ADAPT_SEEDS, LLU_TEST_SEEDS
+
+    held = (set(args.door_seeds) | set(args.headon_door_seeds)) & (set(LLU_ADAPT_SEEDS) | set(LLU_TEST_SEEDS))
+    if held:
+        raise SystemExit(f"--door-seeds / --headon-door-seeds {sorted(held)} are the held-out doorway's "
+                         "adaptation or test seeds")
+    if "doorway" in args.scenarios and set(args.train_seeds) & set(args.door_seeds):
+        raise SystemExit("--door-seeds overlap --train-seeds of the doorway scenario")
     with executor_from_args(args) as ex, _progress(args.no_progress) as prog:
         sizes = build_datasets(args.out, args.scenarios, {"train": args.train_seeds, "val": args.val_seeds},
                                every=args.every, augment=args.augment, executor=ex, resume=args.resume,
-                               on_update=_job_task(prog, "expert episodes"), vary_geometry=True)
+                               on_update=_job_task(prog, "expert episodes"), vary_geometry=True,
+                               door_seeds=args.door_seeds, headon_door_seeds=args.headon_door_seeds)
     Console().print(f"{sizes['train']} train / {sizes['val']} val samples -> {args.out}/samples_train.npz, "
                     "samples_val.npz")
     return 0
@@ -200,7 +230,24 @@ def cmd_eval(args) -> int:
         except (ValueError, OSError) as exc:
             console.print(f"[red]--baseline-cache: {exc}[/]")
             return 2
+    overrides = {}
+    if args.route_berth is not None:
+        if not args.route_berth >= 0:
+            console.print("[red]--route-berth must be >= 0 metres[/]")
+            return 2
+        overrides["route_berth"] = float(args.route_berth)
+    if args.cross_tau is not None:
+        if not args.cross_tau >= 0:
+            console.print("[red]--cross-tau must be >= 0 seconds[/]")
+            return 2
+        overrides["cross_tau"] = float(args.cross_tau)
     planner = load_planner(args.checkpoint)
+    if overrides:
+        import dataclasses
+
+        from .planner import OliviaNav
+
+        planner = OliviaNav(planner.params, planner.db, dataclasses.replace(planner.cfg, **overrides))
     out = args.out or os.path.dirname(os.path.abspath(args.checkpoint))
     os.makedirs(out, exist_ok=True)
     baselines = tuple(b for b in args.baselines.split(",") if b)
@@ -211,13 +258,14 @@ def cmd_eval(args) -> int:
     if set(args.seeds) & set(range(0, 100)):
         console.print("[yellow]warning: seeds below 100 overlap the default training/validation seeds[/]")
     t0 = time.perf_counter()
-    result: dict = {"checkpoint": args.checkpoint, "seeds": list(args.seeds)}
+    result: dict = {"checkpoint": args.checkpoint, "seeds": list(args.seeds), "overrides": overrides}
     with _progress(args.no_progress) as prog, executor_from_args(args) as ex:
         md = ""
         if not args.no_table1:
             rows = table_one_parallel(args.checkpoint, args.scenarios, args.seeds, baselines, variants, executor=ex,
                                       out_dir=out, resume=args.resume, on_update=_job_task(prog, "Table I"),
-                                      log=console.log, cache_dir=cache.directory if cache else None)
+                                      log=console.log, cache_dir=cache.directory if cache else None,
+                                      overrides=overrides)
             result["table1"] = rows
             md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
         if not args.no_table2:

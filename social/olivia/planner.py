@@ -31,16 +31,17 @@ from ..convoi.dwa import step_unicycle
 from ..convoi.geometry import F32, field_lookup, robot_to_world
 from .llu import LLUBuffer, TextDB
 from .captions import ACTIONS, caption_scene
-from .features import FUTURE_STRIDE, HORIZON, expert_action, observe
+from .features import HORIZON, expert_action, observe
 from ..convoi.perception import visible_people
 from .lidar import PREV_STEPS
 from ..convoi.runner import GOAL_TOLERANCE, EpisodeResult, make_world
 from .sc_clip import SCCLIP, SCCLIPConfig, normalize
-from ..convoi.scenarios import PERSON_RADIUS, ROBOT_RADIUS, Scenario
+from .selection import (WALL_MARGIN, consistency_cost, oncoming_count, oncoming_mask, safety_cost,  # noqa: F401
+                        selection_scores, side_cost)
+from ..convoi.scenarios import ROBOT_RADIUS, Scenario
 from .tpn import TPN, TPNConfig
 from .tsm import TSM, TSMConfig
 
-WALL_MARGIN = 0.05  # m: the clearance a plan keeps from the map (the NC cuts corners by about this)
 
 VARIANTS = ("olivia", "no_image", "no_text", "no_lidar")
 VARIANT_LABELS = {"olivia": "OLiVia-Nav", "no_image": "OLiVia-Nav w/o E_I", "no_text": "OLiVia-Nav w/o E_T",
@@ -67,6 +68,18 @@ class OliviaConfig:
     text_gate: float = 0.9  # E_T is used only when the retrieved caption's cosine similarity to E_I reaches it
     view_gate: float = 0.95  # the same for D_T entries an LLU update keyed by their views' E_I (image to image)
     arrive_radius: float = 1.0  # m: within it the NC drives straight at the goal (0: off)
+    # while someone walks at the robot head-on (selection.oncoming_mask): the consistency cost does
+    # not charge a plan's deviation to the right of the followed one (yielding), and, when
+    # cross_tau > 0 (s), the safety cost lets the part of their velocity across the line to the
+    # robot decay with that time constant. Off by default: on doorways where the person keeps
+    # walking diagonally past the door, that forecast sent the robot into their path (stop 39)
+    oncoming_yield: bool = True
+    cross_tau: float = 0.0
+    oncoming_time: float = 4.0  # s: a person counts as head-on when it can meet the robot within this time
+    route_fallback: bool = True  # when every plan runs into the map, the NC follows the static route
+    # m: the route (goal features, fallback) keeps this far from people standing still and never
+    # crosses a standing group, as the walker's does (0: the walls-only shortest path, as trained)
+    route_berth: float = 0.0
 
 
 N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
@@ -148,87 +161,6 @@ class PlanResult:
     similarity: float = 1.0
 
 
-def consistency_cost(trajs_world: np.ndarray, prev_world: np.ndarray | None, elapsed: float,
-                     min_length: float = 0.6) -> np.ndarray:
-    """(K,) mean squared distance (m²) of each candidate plan ``trajs_world`` (K, horizon, 2)
-    (world, poses every FUTURE_STRIDE steps from now) from the plan being followed,
-    ``prev_world`` (1 + horizon, 2) (its start pose, then its poses), made ``elapsed`` s ago and
-    read at the same instants (held at its end). Zeros without a previous plan, and when it
-    was a stop (under ``min_length`` m): waiting commits to nothing, and holding to it would
-    keep the robot waiting."""
-    K, H = trajs_world.shape[:2]
-    if prev_world is None or np.sum(np.linalg.norm(np.diff(prev_world, axis=0), axis=1)) < min_length:
-        return np.zeros(K)
-    step = FUTURE_STRIDE * 0.1
-    tp = np.arange(len(prev_world)) * step
-    tq = np.minimum(elapsed + step * np.arange(1, H + 1), tp[-1])
-    ref = np.stack([np.interp(tq, tp, prev_world[:, 0]), np.interp(tq, tp, prev_world[:, 1])], -1)
-    return np.mean(np.sum((trajs_world - ref[None]) ** 2, -1), -1)
-
-
-def safety_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarray, margin: float) -> np.ndarray:
-    """(K,) intrusion of each plan ``trajs_world`` (K, horizon, 2) into the space of the people
-    seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2) m/s (constant velocity, as
-    the two LiDAR sweeps give it): the sum over the plan's poses of
-    ``max(0, margin - edge gap)²`` (m²), nearer poses weighing more (1 down to 0.5)."""
-    K, H = trajs_world.shape[:2]
-    if len(people) == 0:
-        return np.zeros(K)
-    tq = FUTURE_STRIDE * 0.1 * np.arange(1, H + 1)
-    pred = people[None] + tq[:, None, None] * people_vel[None]  # (H, P, 2)
-    gap = np.linalg.norm(trajs_world[:, :, None] - pred[None], axis=-1) - (ROBOT_RADIUS + PERSON_RADIUS)
-    w = np.linspace(1.0, 0.5, H)[None, :]
-    return np.sum(w * np.max(np.clip(margin - gap, 0.0, None), -1) ** 2, -1)
-
-
-def side_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarray, cone: float = 0.44,
-              near: float = 1.0) -> np.ndarray:
-    """(K,) how many of the people seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2)
-    m/s (constant velocity), walk head-on toward plan ``trajs_world`` (K, horizon, 2) (within
-    ``cone`` rad of its heading, faster than 0.3 m/s) and go by on its right within ``near`` m
-    (edge to edge) at the closest approach: right-hand traffic passes them on the left."""
-    K, H = trajs_world.shape[:2]
-    if len(people) == 0:
-        return np.zeros(K)
-    tq = FUTURE_STRIDE * 0.1 * np.arange(1, H + 1)
-    pred = people[None] + tq[:, None, None] * people_vel[None]  # (H, P, 2)
-    # the plan's direction of travel (first to last pose), not its pose-to-pose heading, which
-    # turns away from the person while stepping aside
-    chord = trajs_world[:, -1] - trajs_world[:, 0]
-    chord = chord / np.maximum(np.linalg.norm(chord, axis=-1, keepdims=True), 1e-6)
-    head = np.broadcast_to(chord[:, None], trajs_world.shape)  # (K, H, 2)
-    rel = pred[None] - trajs_world[:, :, None]  # (K, H, P, 2)
-    dist = np.linalg.norm(rel, axis=-1)
-    i = np.argmin(dist, axis=1)  # (K, P) closest approach
-    take = lambda a: np.take_along_axis(a, i[:, None, :], 1)[:, 0]  # noqa: E731
-    cross = take(head[:, :, None, 0] * rel[..., 1] - head[:, :, None, 1] * rel[..., 0])  # > 0: on the left
-    speed = np.linalg.norm(people_vel, axis=-1)
-    along = take(np.sum(head[:, :, None, :] * people_vel[None, None], -1))
-    oncoming = (along < -np.cos(cone) * speed[None]) & (speed[None] > 0.3)
-    gap = take(dist) - (ROBOT_RADIUS + PERSON_RADIUS)
-    return np.sum(oncoming & (cross < 0) & (gap < near), -1).astype(np.float64)
-
-
-def oncoming_count(pose: np.ndarray, people: np.ndarray, people_vel: np.ndarray, cone: float = 0.44,
-                   radius: float = 4.0, min_speed: float = 0.3) -> int:
-    """How many of the people seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2) m/s,
-    are ahead of the robot at ``pose`` (3,) (x, y, yaw) (within 60° of its heading and ``radius`` m) and walk toward it
-    within ``cone`` rad (25°) of head-on, faster than ``min_speed`` m/s: the situations where
-    the walker steps aside. Only what the robot observes (positions and velocities from its
-    two sweeps), so a deployed robot can tag its own views this way."""
-    if len(people) == 0:
-        return 0
-    heading = np.array([np.cos(pose[2]), np.sin(pose[2])])
-    rel = np.asarray(people, np.float64) - np.asarray(pose[:2], np.float64)
-    dist = np.linalg.norm(rel, axis=-1)
-    speed = np.linalg.norm(people_vel, axis=-1)
-    ahead = rel @ heading > 0.5 * dist  # within 60° of the robot's heading
-    # toward the robot: the person's velocity points back at it within the cone
-    to_robot = -rel / np.maximum(dist[:, None], 1e-6)
-    cos_to = np.sum(np.asarray(people_vel, np.float64) * to_robot, -1) / np.maximum(speed, 1e-6)
-    return int(np.sum(ahead & (dist < radius) & (speed > min_speed) & (cos_to > np.cos(cone))))
-
-
 class OliviaNav:
     """The planner. params: dict with ``clip``, ``tpn``, ``tsm`` pytrees, and after an LLU update
     ``clip_tpn``: the SC-CLIP the TPN was trained with, which gives the TPN its E_I while the
@@ -269,22 +201,34 @@ class OliviaNav:
                           int(self.db.actions[j]), np.asarray(e_i), np.asarray(votes), float(sim))
 
 
+def route_ahead(path: np.ndarray, xy: np.ndarray, n: int, step: float = 0.24) -> np.ndarray:
+    """(1 + n, 2) world: ``xy`` (2,), then ``n`` points of the route ``path`` (M, 2) every
+    ``step`` m (0.6 m/s x 0.4 s) from the route point nearest to ``xy`` (held at its end)."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    i = int(np.argmin(np.linalg.norm(path - np.asarray(xy, np.float64), axis=1)))
+    q = np.minimum(s[i] + step * np.arange(1, n + 1), s[-1])
+    pts = np.stack([np.interp(q, s, path[:, 0]), np.interp(q, s, path[:, 1])], -1)
+    return np.vstack([np.asarray(xy, np.float64)[None], pts])
+
+
 def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | None = None,
                        buffer: LLUBuffer | None = None, buffer_every: int = 5,
-                       sf: pedsim.SocialForceConfig | None = None) -> EpisodeResult:
+                       sf: pedsim.SocialForceConfig | None = None, trace: list | None = None) -> EpisodeResult:
     """Drive OLiVia-Nav through ``scn`` (same loop as :func:`splatsearch.social.convoi.runner.run_episode`:
     move the robot, refusing moves into walls, then step the people, who see it). With
     ``buffer``, every ``buffer_every``-th view is stored for the LLU with its privileged scene,
     for a template captioner; the scene's action is the expert's from that state
     (:func:`~splatsearch.social.olivia.features.expert_action`). ``plan_ms`` is the mean wall-clock
-    per planning cycle."""
+    per planning cycle. ``trace``: a list that gets, per plan, the step ``t``, the ``pose``, the
+    world plans ``cand``, the networks' ``logits`` and :func:`selection_scores`' parts."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()
     caps, valid = jnp.asarray(caps), jnp.asarray(valid)
     act = jnp.asarray(scn.peds.active)
     field = scn.field()
-    path = scn.global_path()
+    path = scn.global_path(avoid_standing=cfg.route_berth) if cfg.route_berth > 0 else scn.global_path()
     seed_key = jax.random.PRNGKey(scn.seed)
     n = scn.max_steps if max_steps is None else int(max_steps)
     pose = np.asarray(scn.start, np.float32)
@@ -308,21 +252,20 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
             res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal, votes)
             votes = res.votes
             cand = np.stack([robot_to_world(q[:, :2].astype(np.float64), pose.astype(np.float64)) for q in res.trajs])
-            score = np.asarray(res.logits, np.float64)
-            if cfg.consistency > 0 and traj_world is not None:
-                # a plan is a commitment: switching sides on every cycle walks into what both avoid
-                score = score - cfg.consistency * consistency_cost(cand, traj_world, since * scn.dt)
-            if cfg.safety > 0:
-                seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
-                vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
-                score = score - cfg.safety * safety_cost(cand, people[-1][seen], vel[seen], cfg.safety_margin)
-                if cfg.pass_right > 0:
-                    score = score - cfg.pass_right * side_cost(cand, people[-1][seen], vel[seen])
-                # and the map: a plan through a door post is refused move by move, forever
-                clr = np.asarray(field_lookup(field, jnp.asarray(cand, F32)))
-                score = score - cfg.safety * np.sum(np.clip(ROBOT_RADIUS + WALL_MARGIN - clr, 0.0, None) ** 2, -1) * 100.0
+            seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
+            vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
+            clr = np.asarray(field_lookup(field, jnp.asarray(cand, F32))) if cfg.safety > 0 else None
+            parts = selection_scores(res.logits, cand, pose, traj_world, since * scn.dt, people[-1][seen], vel[seen],
+                                     clr, cfg)
+            score = parts["score"]
+            if trace is not None:
+                trace.append({"t": t, "pose": pose.copy(), "cand": cand, "logits": np.asarray(res.logits)} | parts)
             k = int(np.argmax(score))
             traj_world = np.vstack([pose[None, :2], cand[k]])
+            if cfg.route_fallback and clr is not None and np.all(parts["map"] > 0):
+                # every plan runs into the map (a door post ahead): the NC follows the static
+                # route instead; following the least bad plan, it pushed into the post for good
+                traj_world = route_ahead(path, pose[:2], HORIZON)
             if cfg.arrive_radius > 0 and np.linalg.norm(pose[:2] - scn.goal) < cfg.arrive_radius:
                 # the last metre: straight at the goal (plans trained on paths that end there
                 # do not turn back to a goal overshot)
