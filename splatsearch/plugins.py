@@ -67,8 +67,8 @@ MATCHER_HELP = ("goal-image matcher: 'sift[,contrast_threshold=0.04][,ratio=0.75
                 "docs/matching.md) or 'loftr:PATH[,conf_thresh=0.5][,max_side=640][,device=cpu]' (a kornia LoFTR "
                 "checkpoint)")
 INPAINTER_HELP = ("novel-view completion: 'auto' (default: the VCICN with the weights shipped in the package, "
-                  "or OpenCV when none are shipped), 'vcicn[:FILE.npz]' (the multi-view completion network; "
-                  "FILE from `splatsearch vcicn train`), 'opencv[,method=telea]' or 'diffusion:DIR[,prompt=TEXT]"
+                  "or OpenCV when none are shipped), 'vcicn[:FILE.npz][,composite=holes|over]' (the multi-view "
+                  "completion network; FILE from `splatsearch vcicn train`; docs/vcicn.md), 'opencv[,method=telea]' or 'diffusion:DIR[,prompt=TEXT]"
                   "[,num_inference_steps=25][,device=cpu]' (a local diffusers inpainting pipeline directory)")
 ENCODER_HELP = ("image encoder for the value map: 'colortexture' (default), 'openclip:FILE[,model_name=ViT-B-32]' "
                 "or 'transformers:DIR' (a CLIP / SigLIP / BLIP-2 save_pretrained directory)")
@@ -281,7 +281,7 @@ def _auto_inpainter(**opts):
 
 _INPAINTERS = {
     "auto": _Kind(_auto_inpainter, False, ()),
-    "vcicn": _Kind(_vcicn_inpainter, None, ("sha256",)),
+    "vcicn": _Kind(_vcicn_inpainter, None, ("sha256", "composite")),
     "opencv": _Kind(_opencv_inpainter, False, ("method", "radius", "max_side")),
     "diffusion": _Kind(_diffusion_inpainter, True, ("prompt", "num_inference_steps", "guidance_scale", "strength",
                                                     "device", "torch_dtype", "seed"), path_is_dir=True),

@@ -245,6 +245,36 @@ def test_inpainter_keeps_known_pixels_and_runs_without_cameras(tmp_path):
         inp.inpaint(img, m[:, :-1])
 
 
+def test_over_composite_fills_soft_pixels_and_keeps_opaque_ones(tmp_path):
+    from splatsearch.plugins import make_inpainter
+
+    p = str(tmp_path / "w.npz")
+    save_weights(p, init_params(TINY), TINY)
+    rng = np.random.default_rng(1)
+    alpha = np.ones((2, 24, 32), np.float32)
+    alpha[:, 4:10, 4:12] = 0.2  # holes
+    alpha[:, 12:16, 4:12] = 0.7  # soft covered pixels
+    img = (rng.random((2, 24, 32, 3)) * alpha[..., None]).astype(np.float32)  # composited over black
+    m = alpha < 0.5
+    holes_out = VCICNInpainter(p).inpaint(img, m)
+    over = make_inpainter(f"vcicn:{p},composite=over")
+    assert over.composite == "over"
+    out = over.inpaint(img, m, alpha=alpha)
+    opaque = alpha == 1.0
+    np.testing.assert_array_equal(out[opaque], img[opaque])
+    np.testing.assert_allclose(out[m], holes_out[m], atol=1e-6)
+    soft = (alpha == 0.7)
+    assert np.all(out[soft] >= img[soft]) and np.any(out[soft] > img[soft] + 0.05)
+    import cv2
+
+    pred = np.stack([cv2.resize(v, (32, 24), interpolation=cv2.INTER_LINEAR) for v in over.predict(img, m)])
+    np.testing.assert_allclose(out[soft], np.clip(img[soft] + 0.3 * np.clip(pred[soft], 0, 1), 0, 1), atol=1e-5)
+    # without the renders' opacity, "over" completes the holes only
+    np.testing.assert_array_equal(over.inpaint(img, m), holes_out)
+    with pytest.raises(ValueError, match="composite"):
+        VCICNInpainter(p, composite="blend")
+
+
 def test_plugin_specs_and_variants(tmp_path):
     from splatsearch.agent import AgentConfig
     from splatsearch.agent.config import resolve_variant

@@ -402,20 +402,36 @@ class VCICNInpainter:
         weights: a weights ``.npz`` (checked against the provenance JSON beside it when there is
             one); None: the weights shipped with the package.
         sha256: expected SHA-256 of ``weights`` (overrides the provenance file).
+        composite: how the prediction enters the output. ``"holes"`` (default): only the hole
+            pixels are replaced, ``out = mask * pred + (1 - mask) * render``. ``"over"``: the
+            render, which the rasterizer composited over black, is composited over the
+            prediction instead, ``out = render + (1 - alpha) * pred`` outside the holes (holes
+            as with ``"holes"``), so the soft pixels at the edge of what the map covers
+            (opacity between the hole threshold and 1, darkened towards black in the render)
+            get the predicted background behind them. Needs the renders' ``alpha``; without it
+            ``"over"`` acts as ``"holes"``.
 
-    ``inpaint(images (V, H, W, 3), masks (V, H, W) bool, viewmats=None)`` completes all V views
-    jointly: up to :data:`MAX_VIEWS` per forward pass (more are completed in chunks). With
-    ``viewmats`` (V, 4, 4) world-to-camera, the views' relative cameras inform the attention; the
-    NVSM passes them (:attr:`wants_cameras`). Known pixels are returned unchanged; a view
-    without holes is returned as it is. The weights are checked when the inpainter is built and
-    moved to JAX on first use.
+    ``inpaint(images (V, H, W, 3), masks (V, H, W) bool, viewmats=None, alpha=None)`` completes
+    all V views jointly: up to :data:`MAX_VIEWS` per forward pass (more are completed in chunks).
+    With ``viewmats`` (V, 4, 4) world-to-camera, the views' relative cameras inform the
+    attention; the NVSM passes them (:attr:`wants_cameras`). ``alpha`` (V, H, W) in [0, 1] is the
+    renders' accumulated opacity (used by ``composite="over"`` only). With ``"holes"``, known
+    pixels are returned unchanged and a view without holes is returned as it is. The weights are
+    checked when the inpainter is built and moved to JAX on first use.
     """
 
     #: the NVSM passes viewmats and the full hole masks (background included) to this inpainter
     wants_cameras = True
     completes_background = True
 
-    def __init__(self, weights: str | os.PathLike | None = None, sha256: str | None = None):
+    #: the ways :meth:`inpaint` can put the prediction into the render (see the class docstring)
+    COMPOSITES = ("holes", "over")
+
+    def __init__(self, weights: str | os.PathLike | None = None, sha256: str | None = None,
+                 composite: str = "holes"):
+        if composite not in self.COMPOSITES:
+            raise ValueError(f"composite must be one of {self.COMPOSITES}, got {composite!r}")
+        self.composite = composite
         if weights is None:
             params, cfg, meta, prov = shipped_weights()
             self.source = f"{SHIPPED_PACKAGE}/{SHIPPED_NAME}"
@@ -458,20 +474,29 @@ class VCICNInpainter:
             out[s:s + n] = np.asarray(fn(xb, cb, vb))[0, :n]
         return out
 
-    def inpaint(self, images: np.ndarray, masks: np.ndarray, viewmats: np.ndarray | None = None) -> np.ndarray:
-        """(V, H, W, 3) float32: the hole pixels replaced by the upsampled prediction."""
+    def inpaint(self, images: np.ndarray, masks: np.ndarray, viewmats: np.ndarray | None = None,
+                alpha: np.ndarray | None = None) -> np.ndarray:
+        """(V, H, W, 3) float32: the hole pixels replaced by the upsampled prediction (and, with
+        ``composite="over"`` and ``alpha`` (V, H, W) given, the soft covered pixels composited
+        over it)."""
         import cv2
 
         from .inpainting import _check_stack
 
         images, masks = _check_stack(images, masks)
+        over = self.composite == "over" and alpha is not None
+        if over:
+            alpha = np.clip(np.asarray(alpha, np.float32).reshape(masks.shape), 0.0, 1.0)
         out = images.copy()
-        todo = [i for i in range(len(images)) if masks[i].any()]
+        todo = [i for i in range(len(images)) if masks[i].any() or (over and (alpha[i] < 1.0).any())]
         if not todo:
             return out
         pred = self.predict(images, masks, viewmats)
         H, W = masks.shape[1:]
         for i in todo:
-            full = cv2.resize(pred[i], (W, H), interpolation=cv2.INTER_LINEAR)
-            out[i][masks[i]] = np.clip(full[masks[i]], 0.0, 1.0)
+            full = np.clip(cv2.resize(pred[i], (W, H), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+            if over:
+                soft = ~masks[i] & (alpha[i] < 1.0)
+                out[i][soft] = np.clip(images[i][soft] + (1.0 - alpha[i][soft])[:, None] * full[soft], 0.0, 1.0)
+            out[i][masks[i]] = full[masks[i]]
         return out
