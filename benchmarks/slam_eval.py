@@ -26,7 +26,7 @@ import time
 from splatsearch import datasets
 from splatsearch.map_job import MapJob, map_sequence
 from splatsearch.mapper import MapperConfig
-from splatsearch.slam import SOLVERS, TrackerConfig
+from splatsearch.slam import SOLVERS, TrackerConfig, parse_lateral_sigma
 
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
@@ -75,6 +75,13 @@ def _run(name: str, seq, job: MapJob, out: str) -> dict:
     return rec
 
 
+def _lateral(text: str) -> float | None:
+    try:
+        return parse_lateral_sigma(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("what", choices=["tum", "sim", "speed"])
@@ -112,9 +119,9 @@ def main(argv=None) -> int:
                         f"than this fraction of the recent frames' median (0: off; default {d.map_min_info:g})")
     p.add_argument("--map-skip-max", type=int, default=d.map_skip_max,
                    help=f"with --map-min-info: most frames in a row left out of the map (default {d.map_skip_max})")
-    p.add_argument("--prior-lateral", type=float, default=d.prior_lateral_sigma,
-                   help="odometry prior's sigma across the direction moved, as a fraction of the distance "
-                        "(default: none, the same as along it)")
+    p.add_argument("--prior-lateral", default=d.prior_lateral_sigma, type=_lateral,
+                   help="odometry prior's sigma across the direction moved, as a fraction of the distance, or "
+                        f"'off' (the same as along it; default {d.prior_lateral_sigma})")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
     p.add_argument("--rgbd-odometry", action="store_true", help="start tracking from OpenCV RGB-D odometry")
     p.add_argument("--planar", action="store_true", help="track planar motions only (ground robot)")

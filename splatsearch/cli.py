@@ -103,7 +103,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
     from splatsearch import datasets
     from splatsearch.map_job import MapJob, map_sequence
     from splatsearch.mapper import MapperConfig
-    from splatsearch.slam import TrackerConfig
+    from splatsearch.slam import TrackerConfig, parse_lateral_sigma
 
     console = Console()
     data = args.data or args.tum
@@ -150,7 +150,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
     if args.track_prior_weight is not None:
         tcfg.prior_weight = args.track_prior_weight
     if args.track_prior_lateral is not None:
-        tcfg.prior_lateral_sigma = args.track_prior_lateral
+        tcfg.prior_lateral_sigma = parse_lateral_sigma(args.track_prior_lateral)
     tcfg.validate()
     needs_track = [flag for flag, on in (("--track-from-gt", args.track_from_gt),
                                          ("--track-rgbd-odometry", args.track_rgbd_odometry),
@@ -465,12 +465,13 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--keyframe-every", type=int, default=5,
                    help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
     m.add_argument("--track-iters", type=int, default=40,
-                   help="most tracking Adam steps per frame at the tracking size, after the coarse ones (default 40; "
-                        "the fast setting: 8 with --track-coarse-iters 30 --track-patience 5)")
+                   help="with --track-solver adam: most tracking Adam steps per frame at the tracking size, after "
+                        "the coarse ones (default 40; the fast setting: 8 with --track-coarse-iters 30 "
+                        "--track-patience 5)")
     m.add_argument("--track-solver", choices=("adam", "gn"), default=None,
                    help="with --track: the pose solver: 'gn' (Levenberg-Marquardt on reweighted L1 residuals, "
-                        "at most --track-gn-iters steps) or 'adam' (SplaTAM's first-order steps, --track-iters; "
-                        "default: TrackerConfig's)")
+                        "at most --track-gn-iters steps; the default) or 'adam' (SplaTAM's first-order steps, "
+                        "--track-iters; 4-6x slower a frame)")
     m.add_argument("--track-gn-iters", type=positive_int, default=None,
                    help="with --track-solver gn: most Levenberg-Marquardt steps per frame "
                         "(default: TrackerConfig's, 10)")
@@ -483,10 +484,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--track-prior-weight", type=float, default=None,
                    help="weight of the odometry prior in the tracking loss, per squared standard deviation of the "
                         "odometry's noise (0: odometry is only the initial guess; default 0.001)")
-    m.add_argument("--track-prior-lateral", type=float, default=None,
+    m.add_argument("--track-prior-lateral", default=None, metavar="FRACTION|off",
                    help="odometry prior's standard deviation across the direction the odometry moved, as a "
-                        "fraction of the distance (a wheeled robot barely slips sideways; default: the same as "
-                        "along it)")
+                        "fraction of the distance (a wheeled robot barely slips sideways; default 0.01), or 'off' "
+                        "for odometry that can slip sideways (then the same as along it)")
     m.add_argument("--track-rgbd-odometry", action="store_true",
                    help="with --track: start each frame's tracking from OpenCV's RGB-D odometry between a "
                         "render of the map and the frame (one render, a few ms), then run --track-iters "

@@ -1,8 +1,8 @@
 """Camera tracking against a Gaussian map, and the SLAM front end that tracks then maps.
 
 Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map frozen, the pose of
-the new frame is refined through the rasterizer's ``viewmat`` gradient, by Adam (SplaTAM's) or by
-Levenberg-Marquardt (``TrackerConfig.solver``; :mod:`splatsearch.tracking_gn`). The loss is L1 on
+the new frame is refined through the rasterizer's ``viewmat`` gradient, by Levenberg-Marquardt
+(the default, :mod:`splatsearch.tracking_gn`) or by Adam (SplaTAM's; ``TrackerConfig.solver``). The loss is L1 on
 depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette > ``sil_thresh``)
 with valid observed depth, leaving out pixels whose depth error exceeds ``outlier_k`` times the
 median (depth edges, moving things); those pixels are chosen once per stage, at the pose the
@@ -149,8 +149,8 @@ class TrackerConfig:
     turns about the world's vertical axis (world z up): the update is restricted to those 3
     degrees of freedom, so height, roll and pitch keep the initial guess's values.
 
-    solver: "adam" (the steps above, ``iters`` of them) or "gn": Levenberg-Marquardt on the same
-    loss and trusted pixels, at most ``gn_iters`` steps per stage. Its metric is the Gauss-Newton
+    solver: "gn" (default): Levenberg-Marquardt on the same loss and trusted pixels, at most
+    ``gn_iters`` steps per stage; or "adam" (the steps above, ``iters`` of them, SplaTAM's). Its metric is the Gauss-Newton
     matrix of the L1 terms reweighted as in IRLS: the residuals' Jacobian w.r.t. the k pose
     parameters from k forward-difference renders (step ``gn_fd_step`` rad / m), each pixel and
     channel weighted by 1 / max(|r|, eps) with eps the larger of ``gn_eps_depth`` (m) /
@@ -170,8 +170,8 @@ class TrackerConfig:
     the image then both count: on flat, weakly textured walls the image alone barely fixes a
     sideways shift, and a shift there trades against a turn. ``prior_lateral_sigma`` (a fraction
     of the distance, None: off) gives the translation across the odometry's direction of motion
-    its own, tighter sigma (a wheeled robot's odometry errs along its path, hardly sideways); see
-    :meth:`prior_precision`. prior_info_max (> 1, "gn" only): where the image fixes the
+    its own, tighter sigma (a wheeled robot's odometry errs along its path, hardly sideways; default
+    0.01); see :meth:`prior_precision`. Set it to None for odometry that can slip sideways. prior_info_max (> 1, "gn" only): where the image fixes the
     rotation less than it did on earlier frames (:attr:`TrackResult.rot_info` below the median of
     the last ``prior_info_window`` tracked frames'), the prior's rotation precision is multiplied
     by that shortfall, at most ``prior_info_max`` (1: off). Along a plain wall the image barely
@@ -206,8 +206,8 @@ class TrackerConfig:
     prior_rot_sigma: float = 0.01
     prior_trans_sigma: float = 0.05
     prior_trans_floor: float = 1e-3
-    prior_lateral_sigma: float | None = None
-    solver: str = "adam"
+    prior_lateral_sigma: float | None = 0.01
+    solver: str = "gn"
     gn_iters: int = 10
     gn_fd_step: float = 1e-3
     gn_eps_depth: float = 1e-3
@@ -279,6 +279,20 @@ class TrackerConfig:
             P = np.outer(d, d)
             Q[3:, 3:] = self.prior_weight * (P / st ** 2 + (np.eye(3) - P) / s_lat ** 2)
         return Q
+
+
+def parse_lateral_sigma(text: str) -> float | None:
+    """``prior_lateral_sigma`` from a command-line value: a fraction of the distance moved (>= 0),
+    or "off" (None: the sideways sigma is the same as along the motion). Raises ValueError."""
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"the lateral prior takes a fraction >= 0 or 'off', got {text!r}") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise ValueError(f"the lateral prior takes a fraction >= 0 or 'off', got {text!r}")
+    return value
 
 
 @dataclass

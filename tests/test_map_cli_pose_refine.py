@@ -32,8 +32,8 @@ def test_map_fast_tracking_flags(tmp_path):
     assert main(base + ["--track-coarse-iters", "10"]) == 2
     assert main(base + ["--track-prior-lateral", "0.01"]) == 2
     assert main(base + ["--track", "--odometry", "--track-prior-lateral", "-1"]) == 2
-    rc = main(base + ["--track", "--odometry", "--track-iters", "4", "--track-coarse-iters", "6", "--track-patience",
-                      "3", "--track-prior-weight", "0.002", "--track-prior-lateral", "0.01"])
+    rc = main(base + ["--track", "--odometry", "--track-solver", "adam", "--track-iters", "4", "--track-coarse-iters",
+                      "6", "--track-patience", "3", "--track-prior-weight", "0.002", "--track-prior-lateral", "off"])
     assert rc == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["frames_mapped"] == 4 and s["bad_frames"] == []

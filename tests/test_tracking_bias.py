@@ -71,13 +71,26 @@ def test_prior_precision_is_tighter_across_the_motion():
     assert along @ Q[3:, 3:] @ along == pytest.approx(1e-3 / (0.05 * 0.2 + 1e-3) ** 2)
     assert across @ Q[3:, 3:] @ across == pytest.approx(1e-3 / (0.01 * 0.2 + 1e-3) ** 2)
     # without a lateral sigma, or without motion, the prior is isotropic and matches prior_sigma
-    for c, s in ((TrackerConfig(), step), (cfg, np.eye(4))):
+    for c, s in ((TrackerConfig(prior_lateral_sigma=None), step), (cfg, np.eye(4))):
         sr, st = c.prior_sigma(s)
         want = np.diag([c.prior_weight / sr ** 2] * 3 + [c.prior_weight / st ** 2] * 3)
         assert np.allclose(c.prior_precision(s), want)
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError):
             TrackerConfig(prior_lateral_sigma=bad).validate()
+
+
+def test_tracking_defaults_and_lateral_flag():
+    from splatsearch.slam import parse_lateral_sigma
+
+    # the default tracker: Levenberg-Marquardt with the wheeled robot's lateral odometry prior
+    d = TrackerConfig()
+    assert d.solver == "gn" and d.prior_lateral_sigma == 0.01
+    assert parse_lateral_sigma("0.02") == 0.02 and parse_lateral_sigma("0") == 0.0
+    assert parse_lateral_sigma("off") is None and parse_lateral_sigma("None") is None
+    for bad in ("-1", "nan", "inf", "sideways"):
+        with pytest.raises(ValueError):
+            parse_lateral_sigma(bad)
 
 
 def test_bad_prior_precision_is_rejected(tracking_map):
