@@ -215,7 +215,7 @@ class TrackerConfig:
     gn_step_tol: float = 1e-5
     gn_eps_rel: float = 2.0
     gn_refresh: bool = False
-    gn_loss_tol: float = 1e-3
+    gn_loss_tol: float = 3e-3
     prior_info_max: float = 1.0
     prior_info_window: int = 20
     map_min_info: float = 0.0

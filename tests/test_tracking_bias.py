@@ -85,7 +85,7 @@ def test_tracking_defaults_and_lateral_flag():
 
     # the default tracker: Levenberg-Marquardt with the wheeled robot's lateral odometry prior
     d = TrackerConfig()
-    assert d.solver == "gn" and d.prior_lateral_sigma == 0.01
+    assert d.solver == "gn" and d.prior_lateral_sigma == 0.01 and d.gn_loss_tol == 3e-3
     assert parse_lateral_sigma("0.02") == 0.02 and parse_lateral_sigma("0") == 0.0
     assert parse_lateral_sigma("off") is None and parse_lateral_sigma("None") is None
     for bad in ("-1", "nan", "inf", "sideways"):
