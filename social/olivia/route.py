@@ -5,7 +5,9 @@ path, which in the static-groups scene runs through an F-formation. The walker's
 from standing people and never crosses a group, but it reads who stands where from the scene,
 which the robot does not perceive. :class:`PerceivedRoute` builds that route from what the robot
 perceives: people in line of sight within sensing range (the mask the caller passes), standing =
-measured speed over the two LiDAR sweeps below ``STAND_SPEED``, grouped by
+measured speed over the two LiDAR sweeps below ``STAND_SPEED`` (for someone the robot has seen
+walking: at every plan for ``STAND_TIME``, since a walker who stops to let the robot by walks on),
+grouped by
 :func:`~splatsearch.social.convoi.perception.detect_groups`. A person stays in the set after
 leaving view (the robot remembers where it saw them standing) and leaves it when seen walking. The
 global re-route (one FMM solve) runs only when that set changes.
@@ -19,7 +21,10 @@ from ..convoi.geometry import distance_field_from_capsules
 from ..convoi.perception import detect_groups
 from ..convoi.scenarios import GRID, PERSON_RADIUS, Scenario, resample_polyline, smooth_polyline
 
-STAND_SPEED = 0.15  # m/s: measured slower than this over the sweep interval = standing
+# people standing in a group shift their weight at 0.1-0.2 m/s; someone who stops for a moment
+# to let the robot by is not a standing person to route around
+STAND_SPEED = 0.3  # m/s: measured slower than this over the sweep interval = not walking
+STAND_TIME = 1.0  # s: someone seen walking who is then seen still for this long = standing again
 
 
 def route_around(scn: Scenario, standing: np.ndarray, berth: float, start: np.ndarray | None = None,
@@ -60,23 +65,31 @@ class PerceivedRoute:
         self.walls = scn.global_path()
         self.path = self.walls
         self.standing: dict[int, np.ndarray] = {}  # person index -> where they were seen standing
+        self.slow_since: dict[int, float] = {}  # person index -> since when (s) seen not walking
+        self.walked: set[int] = set()  # people seen walking at some plan
         self.replans = 0
 
-    def update(self, xy: np.ndarray, pos: np.ndarray, vel: np.ndarray, seen: np.ndarray,
+    def update(self, xy: np.ndarray, pos: np.ndarray, vel: np.ndarray, seen: np.ndarray, now: float,
                measured: bool = True) -> np.ndarray:
-        """The route (M, 2) after this plan's perception from the robot at ``xy`` (2,) m: people at
-        ``pos`` (P, 2) m with measured ``vel`` (P, 2) m/s, ``seen`` (P,) bool. A re-route starts at
-        ``xy``; when none exists from there the previous route is kept. ``measured`` False (no second sweep yet): speeds are
-        unknown, nobody is classed."""
+        """The route (M, 2) after this plan's perception at time ``now`` (s) from the robot at
+        ``xy`` (2,) m: people at ``pos`` (P, 2) m with measured ``vel`` (P, 2) m/s, ``seen`` (P,)
+        bool. A re-route starts at ``xy``; when none exists from there the previous route is kept.
+        ``measured`` False (no second sweep yet): speeds are unknown, nobody is classed."""
         if self.berth <= 0 or not measured:
             return self.path
         speed = np.linalg.norm(np.asarray(vel, np.float64), axis=1)
         before = set(self.standing)
-        for i in np.flatnonzero(np.asarray(seen)):
-            i = int(i)
-            if speed[i] < STAND_SPEED:
-                self.standing.setdefault(i, np.asarray(pos[i], np.float64).copy())
+        seen = np.asarray(seen, bool)
+        for i in range(len(seen)):
+            if not seen[i]:
+                self.slow_since.pop(i, None)  # out of view: the next sighting starts the clock again
+            elif speed[i] < STAND_SPEED:
+                since = self.slow_since.setdefault(i, float(now))
+                if i not in self.walked or now - since >= STAND_TIME - 1e-6:
+                    self.standing.setdefault(i, np.asarray(pos[i], np.float64).copy())
             else:
+                self.walked.add(i)
+                self.slow_since.pop(i, None)
                 self.standing.pop(i, None)
         if set(self.standing) != before:
             pts = np.stack([self.standing[i] for i in sorted(self.standing)]) if self.standing else np.zeros((0, 2))
