@@ -80,3 +80,21 @@ def test_zero_berth_keeps_the_walls_only_route():
     pos, seen = _perceive(scn, (0.0, 0.0))
     route = PerceivedRoute(scn, berth=0.0)
     assert route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 5.0) is route.walls
+
+
+def test_perceived_berth_is_stored_and_defaults_for_older_checkpoints(tmp_path):
+    import argparse
+    import dataclasses
+
+    from splatsearch.social.olivia.cli import register_olivia
+    from splatsearch.social.olivia.planner import OliviaConfig
+    from splatsearch.social.olivia.train import config_from_meta, config_to_meta
+
+    meta = config_to_meta(dataclasses.replace(OliviaConfig(), perceived_berth=0.5))
+    assert config_from_meta({"config": meta}).perceived_berth == 0.5
+    del meta["perceived_berth"]  # a checkpoint from before the perceived route gets it
+    assert config_from_meta({"config": meta}).perceived_berth == OliviaConfig().perceived_berth > 0
+    parser = argparse.ArgumentParser()
+    register_olivia(parser.add_subparsers(dest="cmd"))
+    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "none.npz"), "--perceived-berth", "-1"])
+    assert args.func(args) == 2
