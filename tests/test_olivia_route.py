@@ -43,15 +43,15 @@ def test_a_seen_standing_group_is_avoided_and_an_unseen_one_is_not():
     assert seen[:3].all() and not seen[3:5].any()  # the hidden group is behind the wall
     route = PerceivedRoute(scn, berth=0.8)
     # no second sweep yet: nobody's speed is known, the route stays the walls-only one
-    assert route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 0.0, measured=False) is walls
-    path = route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 0.3)
+    assert route.update(pos, np.zeros_like(pos), seen, 0.0, measured=False) is walls
+    path = route.update(pos, np.zeros_like(pos), seen, 0.3)
     assert _clearance(path, GROUP) > PERSON_RADIUS + 0.6
     # never through the group: the route passes wholly on one side of it
     at = np.abs(path[:, 0] - GROUP[:, 0].mean()) < 0.8
     assert np.all(path[at, 1] > GROUP[:, 1].max()) or np.all(path[at, 1] < GROUP[:, 1].min())
     assert route.replans == 1
     # the same perception again: no re-route
-    route.update((0.5, 0.0), pos, np.zeros_like(pos), seen, 2.0)
+    route.update(pos, np.zeros_like(pos), seen, 2.0)
     assert route.replans == 1
 
 
@@ -62,24 +62,24 @@ def test_walking_people_are_not_avoided_and_a_group_that_walks_off_is_forgotten(
     walking = np.zeros_like(pos)
     walking[:3] = [-1.0, 0.0]
     for t in (0.0, 0.2, 2.0):
-        assert route.update((0.0, 0.0), pos, walking, seen, t) is route.walls
+        assert route.update(pos, walking, seen, t) is route.walls
     assert route.replans == 0
     # seen walking, then a brief stop (to let the robot by): not standing
-    route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 2.2)
-    route.update((0.0, 0.0), pos, walking, seen, 2.4)
-    route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 2.6)
-    assert route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 2.6 + 0.5 * STAND_TIME) is route.walls
-    route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 2.6 + STAND_TIME)
+    route.update(pos, np.zeros_like(pos), seen, 2.2)
+    route.update(pos, walking, seen, 2.4)
+    route.update(pos, np.zeros_like(pos), seen, 2.6)
+    assert route.update(pos, np.zeros_like(pos), seen, 2.6 + 0.5 * STAND_TIME) is route.walls
+    route.update(pos, np.zeros_like(pos), seen, 2.6 + STAND_TIME)
     assert _clearance(route.path, GROUP) > PERSON_RADIUS + 0.6
     # they start walking: the route goes back to the walls-only one
-    assert route.update((0.5, 0.0), pos, walking, seen, 4.0) is route.walls
+    assert route.update(pos, walking, seen, 4.0) is route.walls
 
 
 def test_zero_berth_keeps_the_walls_only_route():
     scn = _scene()
     pos, seen = _perceive(scn, (0.0, 0.0))
     route = PerceivedRoute(scn, berth=0.0)
-    assert route.update((0.0, 0.0), pos, np.zeros_like(pos), seen, 5.0) is route.walls
+    assert route.update(pos, np.zeros_like(pos), seen, 5.0) is route.walls
 
 
 def test_perceived_berth_is_stored_and_defaults_for_older_checkpoints(tmp_path):

@@ -260,7 +260,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
             seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
             vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
             if route.berth > 0:
-                path = route.update(pose[:2], people[-1], vel, seen, t * scn.dt,
+                path = route.update(people[-1], vel, seen, t * scn.dt,
                                     measured=len(poses) - 1 - tp >= PREV_STEPS)
             obs = observe(scn, pose, people[-1], poses[tp], people[tp], path)
             res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal, votes)

@@ -10,7 +10,8 @@ walking: at every plan for ``STAND_TIME``, since a walker who stops to let the r
 grouped by
 :func:`~splatsearch.social.convoi.perception.detect_groups`. A person stays in the set after
 leaving view (the robot remembers where it saw them standing) and leaves it when seen walking. The
-global re-route (one FMM solve) runs only when that set changes.
+global re-route (one FMM solve, from the scene's start like the walls-only route) runs only when
+that set changes.
 """
 
 from __future__ import annotations
@@ -69,11 +70,12 @@ class PerceivedRoute:
         self.walked: set[int] = set()  # people seen walking at some plan
         self.replans = 0
 
-    def update(self, xy: np.ndarray, pos: np.ndarray, vel: np.ndarray, seen: np.ndarray, now: float,
+    def update(self, pos: np.ndarray, vel: np.ndarray, seen: np.ndarray, now: float,
                measured: bool = True) -> np.ndarray:
-        """The route (M, 2) after this plan's perception at time ``now`` (s) from the robot at
-        ``xy`` (2,) m: people at ``pos`` (P, 2) m with measured ``vel`` (P, 2) m/s, ``seen`` (P,)
-        bool. A re-route starts at ``xy``; when none exists from there the previous route is kept.
+        """The route (M, 2) after this plan's perception at time ``now`` (s): people at ``pos``
+        (P, 2) m with measured ``vel`` (P, 2) m/s, ``seen`` (P,) bool. The route runs from the
+        scene's start (the goal features project the robot onto it); when none exists the
+        previous one is kept.
         ``measured`` False (no second sweep yet): speeds are unknown, nobody is classed."""
         if self.berth <= 0 or not measured:
             return self.path
@@ -96,9 +98,12 @@ class PerceivedRoute:
             if not len(pts):
                 self.path = self.walls
             else:
-                # people closing every way through (or the robot already inside a berth): keep the
-                # route it has, and it waits or squeezes by as trained
-                route = route_around(self.scn, pts, self.berth, xy)
+                # from the scene's start, as the trained global path: rooted at the robot, a route
+                # carried a sidestep along as the new lateral reference (dev seeds: the robot no
+                # longer drifted back to the lane after passing people, hallway and dynamic groups).
+                # People closing every way through: keep the route in use (the robot waits or
+                # squeezes by as trained)
+                route = route_around(self.scn, pts, self.berth)
                 self.path = self.path if route is None else route
             self.replans += 1
         return self.path
