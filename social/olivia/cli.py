@@ -130,6 +130,11 @@ def register_olivia(social_subparsers) -> None:
                    help="plan selection: the route (goal features, fallback) keeps M metres from people standing "
                         "still and never crosses a standing group, as the walker's does (default: the checkpoint's, "
                         "0 = the walls-only path)")
+    e.add_argument("--perceived-berth", type=float, default=None, metavar="M",
+                   help="plan selection: the route keeps M metres from the standing people the robot has perceived "
+                        "(in line of sight within sensing range, measured nearly still) and never crosses a group "
+                        "of them; re-routed when that set changes (default: the checkpoint's or 0.8; 0 = the "
+                        "walls-only path; --route-berth > 0 takes precedence)")
     e.add_argument("--cross-tau", type=float, default=None, metavar="S",
                    help="plan selection: time constant (s) with which the drift across the line to the robot of a "
                         "person walking at it head-on decays in the safety forecast (default: the checkpoint's; "
@@ -236,6 +241,11 @@ def cmd_eval(args) -> int:
             console.print("[red]--route-berth must be >= 0 metres[/]")
             return 2
         overrides["route_berth"] = float(args.route_berth)
+    if args.perceived_berth is not None:
+        if not args.perceived_berth >= 0:
+            console.print("[red]--perceived-berth must be >= 0 metres[/]")
+            return 2
+        overrides["perceived_berth"] = float(args.perceived_berth)
     if args.cross_tau is not None:
         if not args.cross_tau >= 0:
             console.print("[red]--cross-tau must be >= 0 seconds[/]")

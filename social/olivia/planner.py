@@ -34,6 +34,7 @@ from .captions import ACTIONS, caption_scene
 from .features import HORIZON, expert_action, observe
 from ..convoi.perception import visible_people
 from .lidar import PREV_STEPS
+from .route import PerceivedRoute
 from ..convoi.runner import GOAL_TOLERANCE, EpisodeResult, make_world
 from .sc_clip import SCCLIP, SCCLIPConfig, normalize
 from .selection import (WALL_MARGIN, consistency_cost, oncoming_count, oncoming_mask, safety_cost,  # noqa: F401
@@ -78,8 +79,13 @@ class OliviaConfig:
     oncoming_time: float = 4.0  # s: a person counts as head-on when it can meet the robot within this time
     route_fallback: bool = True  # when every plan runs into the map, the NC follows the static route
     # m: the route (goal features, fallback) keeps this far from people standing still and never
-    # crosses a standing group, as the walker's does (0: the walls-only shortest path, as trained)
+    # crosses a standing group, as the walker's does, reading who stands where from the scene
+    # (privileged; 0: off)
     route_berth: float = 0.0
+    # m: the same berth around the standing people the robot has perceived (route.PerceivedRoute:
+    # in line of sight within sensing range, measured slower than route.STAND_SPEED); used when
+    # route_berth is 0 (0: the walls-only shortest path, as trained)
+    perceived_berth: float = 0.8
 
 
 N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
@@ -129,7 +135,7 @@ def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, is_view, db_actions, image
                                        jnp.full((1,), use_image), jnp.full((1,), use_lidar), with_scores=True)
     logits = TSM(cfg.tsm).apply({"params": tsm_p}, e_t, trajs, jnp.full((1,), use_text))
     logits = select_logits(logits, scores, cfg.score_weight)
-    return trajs[0], logits[0], j, e_i[0], votes, sim
+    return trajs[0], logits[0], j, e_i[0], votes, sim, use_text
 
 
 def select_logits(tsm_logits: jax.Array, tpn_scores: jax.Array, score_weight: float) -> jax.Array:
@@ -149,7 +155,7 @@ class PlanResult:
     """trajs: (K, horizon, 3) robot frame; logits: (K,); index: k selected; caption: the
     retrieved long caption; action: its action; e_img: (D,) E_I; votes: (N_VOTES,) the
     retrieval's accumulated action votes (the next plan's ``prior``); similarity: cosine of E_I
-    and the retrieved E_T (E_T is used when it reaches ``cfg.text_gate``)."""
+    and the retrieved E_T (E_T is used when it reaches ``cfg.text_gate``); text_used: whether it was."""
 
     trajs: np.ndarray
     logits: np.ndarray
@@ -159,6 +165,7 @@ class PlanResult:
     e_img: np.ndarray
     votes: np.ndarray | None = None
     similarity: float = 1.0
+    text_used: bool = True  # E_T reached the TSM (the variant has text and the gate passed)
 
 
 class OliviaNav:
@@ -190,7 +197,7 @@ class OliviaNav:
         v = self.variant
         prior = jnp.zeros(N_VOTES, F32) if prior is None else jnp.asarray(prior, F32)
         p = self.params
-        trajs, logits, j, e_i, votes, sim = _plan(p["clip"], p.get("clip_tpn"), p["tpn"], p["tsm"], self._db, self._keys,
+        trajs, logits, j, e_i, votes, sim, used = _plan(p["clip"], p.get("clip_tpn"), p["tpn"], p["tsm"], self._db, self._keys,
                                                   self._is_view, self._db_actions, jnp.asarray(image),
                                                   jnp.asarray(points, F32), jnp.asarray(points_valid),
                                                   jnp.asarray(goal, F32), prior, self.cfg, v != "no_image",
@@ -198,7 +205,7 @@ class OliviaNav:
         j = int(j)
         logits = np.asarray(logits)
         return PlanResult(np.asarray(trajs), logits, int(np.argmax(logits)), self.db.captions[j],
-                          int(self.db.actions[j]), np.asarray(e_i), np.asarray(votes), float(sim))
+                          int(self.db.actions[j]), np.asarray(e_i), np.asarray(votes), float(sim), bool(used))
 
 
 def route_ahead(path: np.ndarray, xy: np.ndarray, n: int, step: float = 0.24) -> np.ndarray:
@@ -221,7 +228,8 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     for a template captioner; the scene's action is the expert's from that state
     (:func:`~splatsearch.social.olivia.features.expert_action`). ``plan_ms`` is the mean wall-clock
     per planning cycle. ``trace``: a list that gets, per plan, the step ``t``, the ``pose``, the
-    world plans ``cand``, the networks' ``logits`` and :func:`selection_scores`' parts."""
+    world plans ``cand``, the networks' ``logits``, the retrieved caption's ``similarity`` and
+    ``action``, the ``route`` in use and :func:`selection_scores`' parts."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()
@@ -229,6 +237,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     act = jnp.asarray(scn.peds.active)
     field = scn.field()
     path = scn.global_path(avoid_standing=cfg.route_berth) if cfg.route_berth > 0 else scn.global_path()
+    route = PerceivedRoute(scn, cfg.perceived_berth if cfg.route_berth <= 0 else 0.0)
     seed_key = jax.random.PRNGKey(scn.seed)
     n = scn.max_steps if max_steps is None else int(max_steps)
     pose = np.asarray(scn.start, np.float32)
@@ -248,18 +257,23 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
         if t % cfg.replan_every == 0 or traj_world is None:
             tp = max(len(poses) - 1 - PREV_STEPS, 0)
             t0 = time.perf_counter()
+            seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
+            vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
+            if route.berth > 0:
+                path = route.update(people[-1], vel, seen, t * scn.dt,
+                                    measured=len(poses) - 1 - tp >= PREV_STEPS)
             obs = observe(scn, pose, people[-1], poses[tp], people[tp], path)
             res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal, votes)
             votes = res.votes
             cand = np.stack([robot_to_world(q[:, :2].astype(np.float64), pose.astype(np.float64)) for q in res.trajs])
-            seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
-            vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
             clr = np.asarray(field_lookup(field, jnp.asarray(cand, F32))) if cfg.safety > 0 else None
             parts = selection_scores(res.logits, cand, pose, traj_world, since * scn.dt, people[-1][seen], vel[seen],
                                      clr, cfg)
             score = parts["score"]
             if trace is not None:
-                trace.append({"t": t, "pose": pose.copy(), "cand": cand, "logits": np.asarray(res.logits)} | parts)
+                trace.append({"t": t, "pose": pose.copy(), "cand": cand, "logits": np.asarray(res.logits),
+                              "similarity": res.similarity, "action": res.action, "text_used": res.text_used,
+                              "route": path} | parts)
             k = int(np.argmax(score))
             traj_world = np.vstack([pose[None, :2], cand[k]])
             if cfg.route_fallback and clr is not None and np.all(parts["map"] > 0):

@@ -167,7 +167,8 @@ def config_to_meta(cfg: OliviaConfig) -> dict:
             "vote_memory": cfg.vote_memory, "score_weight": cfg.score_weight, "consistency": cfg.consistency,
             "safety": cfg.safety, "safety_margin": cfg.safety_margin, "text_gate": cfg.text_gate, "view_gate": cfg.view_gate, "pass_right": cfg.pass_right,
             "arrive_radius": cfg.arrive_radius, "oncoming_yield": cfg.oncoming_yield, "cross_tau": cfg.cross_tau,
-            "oncoming_time": cfg.oncoming_time, "route_fallback": cfg.route_fallback, "route_berth": cfg.route_berth}
+            "oncoming_time": cfg.oncoming_time, "route_fallback": cfg.route_fallback, "route_berth": cfg.route_berth,
+            "perceived_berth": cfg.perceived_berth}
 
 
 def config_from_meta(meta: dict) -> OliviaConfig:
@@ -182,7 +183,8 @@ def config_from_meta(meta: dict) -> OliviaConfig:
                         retrieve_tau=float(c.get("retrieve_tau", 0.05)), vote_memory=float(c.get("vote_memory", 0.0)),
                         score_weight=float(c.get("score_weight", 1.0 if t["score"] else 0.0)),
                         **{k: float(c[k]) for k in ("consistency", "safety", "safety_margin", "text_gate", "view_gate", "pass_right", "arrive_radius",
-                                                    "cross_tau", "oncoming_time", "route_berth")
+                                                    "cross_tau", "oncoming_time", "route_berth",
+                                                    "perceived_berth")
                            if k in c},
                         **{k: bool(c[k]) for k in ("oncoming_yield", "route_fallback") if k in c})
 
