@@ -27,6 +27,14 @@ TINY = VCICNConfig(width=16, height=16, features=8, heads=2, blocks=1)
 FIXTURE = os.path.join(os.path.dirname(__file__), "data", "vcicn_val_fixture.npz")
 
 
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory) -> str:
+    """A weights file of the untrained TINY model, built once for the inpainter tests."""
+    p = str(tmp_path_factory.mktemp("vcicn") / "w.npz")
+    save_weights(p, init_params(TINY), TINY)
+    return p
+
+
 _APPLY = {}
 
 
@@ -226,9 +234,8 @@ def test_weights_round_trip_and_corruption(tmp_path):
         load_weights(str(tmp_path / "missing.npz"))
 
 
-def test_inpainter_keeps_known_pixels_and_runs_without_cameras(tmp_path):
-    p = str(tmp_path / "w.npz")
-    save_weights(p, init_params(TINY), TINY)
+def test_inpainter_keeps_known_pixels_and_runs_without_cameras(tiny_weights):
+    p = tiny_weights
     inp = VCICNInpainter(p)
     rng = np.random.default_rng(0)
     img = rng.random((3, 30, 40, 3)).astype(np.float32)
@@ -245,11 +252,10 @@ def test_inpainter_keeps_known_pixels_and_runs_without_cameras(tmp_path):
         inp.inpaint(img, m[:, :-1])
 
 
-def test_over_composite_fills_soft_pixels_and_keeps_opaque_ones(tmp_path):
+def test_over_composite_fills_soft_pixels_and_keeps_opaque_ones(tiny_weights):
     from splatsearch.plugins import make_inpainter
 
-    p = str(tmp_path / "w.npz")
-    save_weights(p, init_params(TINY), TINY)
+    p = tiny_weights
     rng = np.random.default_rng(1)
     alpha = np.ones((2, 24, 32), np.float32)
     alpha[:, 4:10, 4:12] = 0.2  # holes
@@ -275,14 +281,48 @@ def test_over_composite_fills_soft_pixels_and_keeps_opaque_ones(tmp_path):
         VCICNInpainter(p, composite="blend")
 
 
-def test_plugin_specs_and_variants(tmp_path):
+def test_nvsm_passes_opacity_so_over_composite_runs_in_the_agent(tiny_weights):
+    from splatsearch import sim
+    from splatsearch.search.novel_views import hemisphere_viewpoints
+    from splatsearch.search.object_search import verify_object
+
+    p = tiny_weights
+    rng = np.random.default_rng(0)
+    n = 400
+    gmap = (rng.uniform(-0.3, 0.3, (n, 3)).astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+            np.full((n, 3), 0.03, np.float32), np.full(n, 0.6, np.float32),
+            rng.uniform(0, 1, (n, 3)).astype(np.float32))
+    K = sim.intrinsics(64, 48)
+    vms = hemisphere_viewpoints([0.0, 0.0, 0.0], 1.0, 3, (30.0,), min_height=None, max_height=None)[:2]
+    goal = rng.uniform(0, 1, (48, 64, 3)).astype(np.float32)
+    over = VCICNInpainter(p, composite="over")
+    seen = {}
+    inpaint = over.inpaint
+
+    def spy(images, masks, viewmats=None, alpha=None):
+        seen["alpha"] = alpha
+        return inpaint(images, masks, viewmats=viewmats, alpha=alpha)
+
+    over.inpaint = spy
+    res = verify_object(goal, gmap, [0.0, 0.0, 0.0], K, 64, 48, inpainter=over, viewmats=vms)
+    alpha = seen["alpha"]
+    assert alpha is not None and alpha.shape == (2, 48, 64)
+    soft = ~res.holes & (alpha < 0.999)
+    opaque = alpha >= 1.0
+    assert soft.any() and res.holes.any()
+    # the soft covered pixels get the prediction behind them, the opaque ones stay as rendered
+    assert np.all(res.images[soft] >= res.rendered[soft] - 1e-6)
+    assert not np.allclose(res.images[soft], res.rendered[soft])
+    np.testing.assert_array_equal(res.images[opaque], res.rendered[opaque])
+
+
+def test_plugin_specs_and_variants(tiny_weights):
     from splatsearch.agent import AgentConfig
     from splatsearch.agent.config import resolve_variant
     from splatsearch.plugins import make_inpainter, resolve_inpainter_spec
     from splatsearch.search.inpainting import OpenCVInpainter
 
-    p = str(tmp_path / "w.npz")
-    save_weights(p, init_params(TINY), TINY)
+    p = tiny_weights
     assert isinstance(make_inpainter(f"vcicn:{p}"), VCICNInpainter)
     assert isinstance(make_inpainter("opencv"), OpenCVInpainter)
     with pytest.raises(FileNotFoundError):

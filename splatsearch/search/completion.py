@@ -415,7 +415,8 @@ class VCICNInpainter:
     all V views jointly: up to :data:`MAX_VIEWS` per forward pass (more are completed in chunks).
     With ``viewmats`` (V, 4, 4) world-to-camera, the views' relative cameras inform the
     attention; the NVSM passes them (:attr:`wants_cameras`). ``alpha`` (V, H, W) in [0, 1] is the
-    renders' accumulated opacity (used by ``composite="over"`` only). With ``"holes"``, known
+    renders' accumulated opacity (used by ``composite="over"`` only; the NVSM passes it,
+    :attr:`wants_alpha`). With ``"holes"``, known
     pixels are returned unchanged and a view without holes is returned as it is. The weights are
     checked when the inpainter is built and moved to JAX on first use.
     """
@@ -423,6 +424,8 @@ class VCICNInpainter:
     #: the NVSM passes viewmats and the full hole masks (background included) to this inpainter
     wants_cameras = True
     completes_background = True
+    #: the NVSM passes the renders' opacity too (used by ``composite="over"``)
+    wants_alpha = True
 
     #: the ways :meth:`inpaint` can put the prediction into the render (see the class docstring)
     COMPOSITES = ("holes", "over")

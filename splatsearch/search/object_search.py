@@ -119,7 +119,9 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
     if not cfg.inpaint:
         images = rgb
     elif getattr(inpainter, "wants_cameras", False):
-        images = inpainter.inpaint(rgb, holes, viewmats=vms)
+        # the opacity lets a learned completion composite the soft covered pixels (VCICN "over")
+        extra = {"alpha": alpha} if getattr(inpainter, "wants_alpha", False) else {}
+        images = inpainter.inpaint(rgb, holes, viewmats=vms, **extra)
     else:
         images = inpainter.inpaint(rgb, holes)
     bv = best_view(goal, images, matcher)
