@@ -8,8 +8,8 @@
 ``--track`` from the first pose, every frame trained (ATE, PSNR at the tracked poses and at the
 ground-truth poses); (c) ground-truth poses with every 5th frame held out (held-out PSNR).
 ``sim``: a walk through dev house ``--seed`` (an evaluation house, seed >= 1000, only with
-``--evaluation``, for the held-out report with settled defaults) with noisy odometry: ground-truth poses, and tracking with the odometry prior (ATE of the raw odometry
-beside it).
+``--evaluation``, for the held-out report with settled defaults) with noisy odometry:
+ground-truth poses, and tracking with the odometry prior (ATE of the raw odometry beside it).
 ``speed``: tracking seconds per frame at 320x240 on this machine (load printed beside it).
 
 Every run appends its summary (without per-frame lists) to ``OUT/results.jsonl``.

@@ -1,18 +1,18 @@
 """Camera tracking against a Gaussian map, and the SLAM front end that tracks then maps.
 
-Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map frozen, the pose of
-the new frame is refined through the rasterizer's ``viewmat`` gradient, by Levenberg-Marquardt
-(the default, :mod:`splatsearch.tracking_gn`) or by Adam (SplaTAM's; ``TrackerConfig.solver``). The loss is L1 on
-depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette > ``sil_thresh``)
-with valid observed depth, leaving out pixels whose depth error exceeds ``outlier_k`` times the
-median (depth edges, moving things); those pixels are chosen once per stage, at the pose the
-stage starts from. The pose update is a left-multiplied se(3) increment ``exp(xi) @ viewmat``
-with xi = (rotation vector in rad, translation in m), both in the camera frame; Adam scales each
-part by its own learning rate, so steps are well conditioned whatever the scene's size. With
-the robot's odometry, a quadratic prior on xi (scaled by the odometry's noise over the frame)
+Tracking (SplaTAM's, thesis Section 4.2.1 with poses unknown): with the map frozen, the pose of the
+new frame is refined through the rasterizer's ``viewmat`` gradient, by Levenberg-Marquardt (the
+default, :mod:`splatsearch.tracking_gn`) or by Adam (SplaTAM's; ``TrackerConfig.solver``). The loss
+is L1 on depth plus ``w_color`` times L1 on colour over pixels the map covers (silhouette >
+``sil_thresh``) with valid observed depth, leaving out pixels whose depth error exceeds
+``outlier_k`` times the median (depth edges, moving things); those pixels are chosen once per stage,
+at the pose the stage starts from. The pose update is a left-multiplied se(3) increment ``exp(xi) @
+viewmat`` with xi = (rotation vector in rad, translation in m), both in the camera frame; Adam
+scales each part by its own learning rate, so steps are well conditioned whatever the scene's size.
+With the robot's odometry, a quadratic prior on xi (scaled by the odometry's noise over the frame)
 joins the loss. An optional coarse stage on smaller images runs first; each stage is one jitted
-``lax.while_loop`` that stops early once its loss stops falling, and the pose with the lowest
-loss is kept.
+``lax.while_loop`` that stops early once its loss stops falling, and the pose with the lowest loss
+is kept.
 
 A frame is not mapped (and its pose is the motion model's prediction) when its depth is all
 invalid, its given pose is not finite, or tracking diverged: a non-finite loss, a last step's
@@ -150,36 +150,36 @@ class TrackerConfig:
     degrees of freedom, so height, roll and pitch keep the initial guess's values.
 
     solver: "gn" (default): Levenberg-Marquardt on the same loss and trusted pixels, at most
-    ``gn_iters`` steps per stage; or "adam" (the steps above, ``iters`` of them, SplaTAM's). Its metric is the Gauss-Newton
-    matrix of the L1 terms reweighted as in IRLS: the residuals' Jacobian w.r.t. the k pose
-    parameters from k forward-difference renders (step ``gn_fd_step`` rad / m), each pixel and
-    channel weighted by 1 / max(|r|, eps) with eps the larger of ``gn_eps_depth`` (m) /
-    ``gn_eps_color`` and ``gn_eps_rel`` x the channel's mean |r| (a floor that keeps nearly exact
-    pixels from dominating the metric). gn_refresh False (default): the metric is formed once at
-    the stage's start and each step then costs one forward + pose-only backward for the exact
-    gradient; True: Jacobian and gradient are re-formed from k + 1 renders after every accepted
-    step. A step that does not lower the loss is rejected and the damping raised; a stage ends
-    after ``gn_iters`` steps, a step below ``gn_step_tol``, an accepted step that lowers the loss
-    by less than a fraction ``gn_loss_tol`` (0: never), or damping past 1e6.
+    ``gn_iters`` steps per stage; or "adam" (the steps above, ``iters`` of them, SplaTAM's).
+    Levenberg-Marquardt's metric is the Gauss-Newton matrix of the L1 terms reweighted as in IRLS:
+    the residuals' Jacobian w.r.t. the k pose parameters from k forward-difference renders (step
+    ``gn_fd_step`` rad / m), each pixel and channel weighted by 1 / max(|r|, eps) with eps the
+    larger of ``gn_eps_depth`` (m) / ``gn_eps_color`` and ``gn_eps_rel`` x the channel's mean |r| (a
+    floor that keeps nearly exact pixels from dominating the metric). gn_refresh False (default):
+    the metric is formed once at the stage's start and each step then costs one forward + pose-only
+    backward for the exact gradient; True: Jacobian and gradient are re-formed from k + 1 renders
+    after every accepted step. A step that does not lower the loss is rejected and the damping
+    raised; a stage ends after ``gn_iters`` steps, a step below ``gn_step_tol``, an accepted step
+    that lowers the loss by less than a fraction ``gn_loss_tol`` (0: never), or damping past 1e6.
 
-    Odometry prior (used when :func:`track` gets ``prior_sigma``, which :class:`SLAM` passes
-    when the robot's odometry is given): the loss adds ``prior_weight`` x (|w| / sigma_rot)^2 +
-    (|t| / sigma_trans)^2 for the increment (w rad, t m) from the odometry's prediction, with
-    sigma_rot = ``prior_rot_sigma`` rad and sigma_trans = ``prior_trans_sigma`` x the distance
-    the odometry moved + ``prior_trans_floor`` m (the odometry's noise per frame). Odometry and
-    the image then both count: on flat, weakly textured walls the image alone barely fixes a
-    sideways shift, and a shift there trades against a turn. ``prior_lateral_sigma`` (a fraction
-    of the distance, None: off) gives the translation across the odometry's direction of motion
-    its own, tighter sigma (a wheeled robot's odometry errs along its path, hardly sideways; default
-    0.01); see :meth:`prior_precision`. Set it to None for odometry that can slip sideways. prior_info_max (> 1, "gn" only): where the image fixes the
-    rotation less than it did on earlier frames (:attr:`TrackResult.rot_info` below the median of
-    the last ``prior_info_window`` tracked frames'), the prior's rotation precision is multiplied
-    by that shortfall, at most ``prior_info_max`` (1: off). Along a plain wall the image barely
-    separates a turn from a sideways shift, and the map's small errors then choose the heading.
-    map_min_info (in [0, 1), "gn" only; 0: off): :class:`SLAM` tracks but does not map a frame
-    whose ``rot_info`` is below this fraction of that median (its pose is poorly fixed, and what it
-    would add to the map would carry its heading error into later frames), at most
-    ``map_skip_max`` frames in a row.
+    Odometry prior (used when :func:`track` gets ``prior_sigma``, which :class:`SLAM` passes when
+    the robot's odometry is given): the loss adds ``prior_weight`` x (|w| / sigma_rot)^2 + (|t| /
+    sigma_trans)^2 for the increment (w rad, t m) from the odometry's prediction, with sigma_rot =
+    ``prior_rot_sigma`` rad and sigma_trans = ``prior_trans_sigma`` x the distance the odometry
+    moved + ``prior_trans_floor`` m (the odometry's noise per frame). Odometry and the image then
+    both count: on flat, weakly textured walls the image alone barely fixes a sideways shift, and a
+    shift there trades against a turn. ``prior_lateral_sigma`` (a fraction of the distance, None:
+    off) gives the translation across the odometry's direction of motion its own, tighter sigma (a
+    wheeled robot's odometry errs along its path, hardly sideways; default 0.01); see
+    :meth:`prior_precision`. Set it to None for odometry that can slip sideways. prior_info_max (>
+    1, "gn" only): where the image fixes the rotation less than it did on earlier frames
+    (:attr:`TrackResult.rot_info` below the median of the last ``prior_info_window`` tracked
+    frames'), the prior's rotation precision is multiplied by that shortfall, at most
+    ``prior_info_max`` (1: off). Along a plain wall the image barely separates a turn from a
+    sideways shift, and the map's small errors then choose the heading. map_min_info (in [0, 1),
+    "gn" only; 0: off): :class:`SLAM` tracks but does not map a frame whose ``rot_info`` is below
+    this fraction of that median (its pose is poorly fixed, and what it would add to the map would
+    carry its heading error into later frames), at most ``map_skip_max`` frames in a row.
     """
 
     iters: int = 40
