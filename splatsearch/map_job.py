@@ -67,14 +67,22 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
     interrupted = False
     t_start = time.perf_counter()
     try:
-        for k, i in enumerate(train):
+        held_set = set(held)
+        k = 0
+        for i in range(len(seq)):
             f = seq.frames[i]
+            if i in held_set:
+                # a held-out view is never mapped, but it links the frame-to-frame chain
+                if job.track and job.use_odometry:
+                    slam.observe(f.rgb, f.depth, seq.odometry[i])
+                continue
             odo = seq.odometry[i] if job.use_odometry else None
             given = f.viewmat if (not job.track or k == 0) else None
             prior = f.viewmat if (job.track and job.gt_prior) else None
             r = slam.process(f.rgb, f.depth, given, odometry=odo, prior=prior)
+            k += 1
             if progress is not None:
-                progress(r, k + 1, len(train))
+                progress(r, k, len(train))
         if job.refine:
             slam.refine(job.refine)
     except KeyboardInterrupt:
@@ -106,9 +114,11 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
                        "track_cpu_s": round(r.track.cpu_seconds, 4) if r.track else None,
                        "track_steps": r.track.steps if r.track else None,
                        "track_loss": _finite(r.track.loss) if r.track else None,
-                       "track_rot_info": _finite(r.track.rot_info) if r.track else None}
+                       "track_rot_info": _finite(r.track.rot_info) if r.track else None, "f2f": r.f2f}
                       for i, r in zip(done, slam.results)],
     }
+    f2f = [r.f2f for r in slam.results if r.f2f is not None]
+    summary["f2f"] = {s: f2f.count(s) for s in ("accepted", "rejected", "failed")} if f2f else None
     bad = [(int(i), r.status) for i, r in zip(done, slam.results) if r.status.startswith("skipped")]
     summary["bad_frames"] = bad
     # evaluation: training views at the estimated poses (what the map was fitted to), held-out
