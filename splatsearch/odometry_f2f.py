@@ -26,7 +26,7 @@ def _gray(rgb: np.ndarray) -> np.ndarray:
 
 def f2f_step(prev_rgb: np.ndarray, prev_depth: np.ndarray, rgb: np.ndarray, depth: np.ndarray, K,
              *, max_depth: float = 10.0, max_translation: float = 0.3, max_rotation_deg: float = 15.0,
-             kind: str = "rgbd") -> np.ndarray | None:
+             max_depth_diff: float = 0.07, kind: str = "rgbd") -> np.ndarray | None:
     """Relative motion between two raw RGB-D frames from OpenCV's RGB-D odometry.
 
     Args:
@@ -35,6 +35,8 @@ def f2f_step(prev_rgb: np.ndarray, prev_depth: np.ndarray, rgb: np.ndarray, dept
         max_depth: pixels farther than this (m) are left out (OpenCV's default is 4 m; indoor
             robot views reach further, and the far pixels carry the rotation).
         max_translation (m), max_rotation_deg: OpenCV's own plausibility limits on the result.
+        max_depth_diff: ICP pairs whose depths differ by more than this (m) are left out; OpenCV
+            starts from no motion, so a limit below the step between the frames drops most pairs.
         kind: "rgbd" (ICP + photometric) or "rgb" (photometric only).
 
     Returns:
@@ -45,6 +47,7 @@ def f2f_step(prev_rgb: np.ndarray, prev_depth: np.ndarray, rgb: np.ndarray, dept
     settings.setMaxDepth(float(max_depth))
     settings.setMaxTranslation(float(max_translation))
     settings.setMaxRotation(float(max_rotation_deg))
+    settings.setMaxDepthDiff(float(max_depth_diff))
     otype = {"rgbd": cv2.OdometryType_RGB_DEPTH, "rgb": cv2.OdometryType_RGB}[kind]
     odo = cv2.Odometry(otype, settings, cv2.OdometryAlgoType_COMMON)
     src = cv2.OdometryFrame(depth=np.ascontiguousarray(prev_depth, np.float32), image=_gray(prev_rgb))

@@ -187,7 +187,8 @@ class TrackerConfig:
     (:mod:`splatsearch.odometry_f2f`, through frames given to :meth:`SLAM.observe` too), accepted
     when its rotation and displacement agree with the wheel odometry's step within 3 sigma of the
     prior above (planar: its yaw only). An accepted rotation replaces the wheel odometry's in the
-    prediction, and the prior's rotation sigma becomes ``f2f_rot_sigma`` rad.
+    prediction, and the prior's rotation sigma becomes ``f2f_rot_sigma`` rad. f2f_max_depth_diff
+    (m): OpenCV's ICP correspondence limit (see :func:`~splatsearch.odometry_f2f.f2f_step`).
     """
 
     iters: int = 40
@@ -230,10 +231,13 @@ class TrackerConfig:
     map_skip_max: int = 5
     f2f_prior: bool = True
     f2f_rot_sigma: float = 1e-3
+    f2f_max_depth_diff: float = 0.07
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
             raise ValueError(f"f2f_rot_sigma must be a finite value > 0, got {self.f2f_rot_sigma}")
+        if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
+            raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if self.gn_iters < 1 or not (self.gn_fd_step > 0 and self.gn_eps_depth > 0 and self.gn_eps_color > 0
@@ -794,7 +798,7 @@ class SLAM:
             self._f2f_acc, self._f2f_link = None, "failed"
             return None
         odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._f2f_ref_odom)
-        step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K)
+        step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K, max_depth_diff=self.tcfg.f2f_max_depth_diff)
         if step is not None and self.tcfg.planar:
             step = odometry_f2f.planar_yaw_only(step, self._f2f_ref_odom[:3, 2])
         sr, st = self.tcfg.prior_sigma(odo)
