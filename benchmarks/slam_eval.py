@@ -131,6 +131,9 @@ def main(argv=None) -> int:
     p.add_argument("--f2f-max-depth-diff", type=float, default=d.f2f_max_depth_diff,
                    help="OpenCV's ICP correspondence depth limit (m) of the frame-to-frame odometry "
                         f"(default {d.f2f_max_depth_diff:g})")
+    p.add_argument("--f2f-trans-sigma", type=float, default=d.f2f_trans_sigma,
+                   help="also take an accepted frame-to-frame step's displacement, with this sigma in m "
+                        f"(default {d.f2f_trans_sigma}: rotation only)")
     p.add_argument("--odometry-seed", type=int, default=None,
                    help="seed of the simulator walk's odometry noise (default: the house seed, so each house "
                         "has its own noise sequence)")
@@ -155,7 +158,8 @@ def main(argv=None) -> int:
                          prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters,
                          prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol,
                          map_min_info=a.map_min_info, map_skip_max=a.map_skip_max, f2f_prior=a.f2f_prior,
-                         f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff)
+                         f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff,
+                         f2f_trans_sigma=a.f2f_trans_sigma)
     try:
         tcfg.validate()
     except ValueError as e:

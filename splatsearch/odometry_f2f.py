@@ -17,7 +17,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["f2f_step", "gate_step", "planar_yaw_only", "prior_step", "rotation_angle"]
+__all__ = ["f2f_step", "gate_step", "horizontal_step", "planar_yaw_only", "prior_step", "rotation_angle"]
 
 
 def _gray(rgb: np.ndarray) -> np.ndarray:
@@ -79,6 +79,18 @@ def planar_yaw_only(step: np.ndarray, up_cam: np.ndarray) -> np.ndarray:
     w = cv2.Rodrigues(step[:3, :3])[0].ravel()
     R = _axis_angle(up, float(w @ up))
     return _with_rotation(step, R)
+
+
+def horizontal_step(step: np.ndarray, up_cam: np.ndarray) -> np.ndarray:
+    """``step`` with the vertical part of its camera displacement removed (``up_cam``: the world's
+    vertical in the previous camera's frame, (3,)), for a camera that moves in a horizontal plane."""
+    step = np.asarray(step, np.float64)
+    up = np.asarray(up_cam, np.float64) / np.linalg.norm(up_cam)
+    disp = -step[:3, :3].T @ step[:3, 3]
+    disp = disp - (disp @ up) * up
+    out = step.copy()
+    out[:3, 3] = -step[:3, :3] @ disp
+    return out
 
 
 def _with_rotation(step: np.ndarray, R: np.ndarray) -> np.ndarray:

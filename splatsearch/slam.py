@@ -189,6 +189,8 @@ class TrackerConfig:
     prior above (planar: its yaw only). An accepted rotation replaces the wheel odometry's in the
     prediction, and the prior's rotation sigma becomes ``f2f_rot_sigma`` rad. f2f_max_depth_diff
     (m): OpenCV's ICP correspondence limit (see :func:`~splatsearch.odometry_f2f.f2f_step`).
+    f2f_trans_sigma (m, None: off): an accepted step's camera displacement replaces the wheel
+    odometry's too (planar: its horizontal part), with this sigma on each axis.
     """
 
     iters: int = 40
@@ -232,10 +234,13 @@ class TrackerConfig:
     f2f_prior: bool = True
     f2f_rot_sigma: float = 1e-3
     f2f_max_depth_diff: float = 0.07
+    f2f_trans_sigma: float | None = None
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
             raise ValueError(f"f2f_rot_sigma must be a finite value > 0, got {self.f2f_rot_sigma}")
+        if self.f2f_trans_sigma is not None and not (self.f2f_trans_sigma > 0 and math.isfinite(self.f2f_trans_sigma)):
+            raise ValueError(f"f2f_trans_sigma must be None or a finite value > 0, got {self.f2f_trans_sigma}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.solver not in SOLVERS:
@@ -710,9 +715,16 @@ class SLAM:
             if self._f2f_acc is not None and self._f2f_link == "accepted":
                 rel_odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom)
                 last = [p for p in self.poses if np.all(np.isfinite(p))][-1].astype(np.float64)
-                pred = (odometry_f2f.prior_step(rel_odo, self._f2f_acc) @ last).astype(np.float32)
                 prior_q = prior_q.copy()
                 prior_q[:3, :3] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_rot_sigma ** 2)
+                if self.tcfg.f2f_trans_sigma is None:
+                    step = odometry_f2f.prior_step(rel_odo, self._f2f_acc)
+                else:  # OpenCV's displacement too
+                    step = self._f2f_acc
+                    if self.tcfg.planar:
+                        step = odometry_f2f.horizontal_step(step, self._last_odom[:3, 2])
+                    prior_q[3:, 3:] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_trans_sigma ** 2)
+                pred = (step @ last).astype(np.float32)
         self._f2f_reset(rgb, depth, odometry)
         self._f2f_status = f2f_status
         if prior is not None and np.all(np.isfinite(prior)):
