@@ -77,9 +77,14 @@ def test_config_defaults_and_validation():
     # the CLI's help shows tracking_args.DEFAULTS without importing JAX: they must be TrackerConfig's
     assert {k: getattr(cfg, k) for k in DEFAULTS} == DEFAULTS
     assert SOLVERS == slam.SOLVERS
+    assert cfg.f2f_trans_sigma is None
     for bad in (0.0, -1e-3, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="f2f_rot_sigma"):
             slam.TrackerConfig(f2f_rot_sigma=bad).validate()
+        with pytest.raises(ValueError, match="f2f_trans_sigma"):
+            slam.TrackerConfig(f2f_trans_sigma=bad).validate()
+        with pytest.raises(ValueError, match="f2f_max_depth_diff"):
+            slam.TrackerConfig(f2f_max_depth_diff=bad).validate()
 
 
 def test_cli_tracking_flags_parse():
@@ -117,15 +122,21 @@ def test_accepted_rotation_replaces_the_odometry_rotation_in_the_prior(turn_pair
 
     monkeypatch.setattr(slam, "track", fake_track)
     monkeypatch.setattr(slam.Mapper, "update", lambda self, *a, **k: {})
-    for on in (True, False):
-        cfg = slam.TrackerConfig(planar=True, f2f_prior=on)
+    odo1[:3, 3] += odo1[:3, :3] @ np.array([0.004, 0.0, 0.0])  # and 4 mm off sideways
+    disp = lambda vm: np.linalg.inv(vm)[:3, 3]  # noqa: E731
+    for on, trans in ((True, None), (False, None), (True, 2e-3)):
+        cfg = slam.TrackerConfig(planar=True, f2f_prior=on, f2f_trans_sigma=trans)
         s = slam.SLAM(K, 320, 240, tracker_config=cfg)
         s.process(a.rgb, a.depth, vm0.astype(np.float32), odometry=vm0)
         with pytest.raises(RuntimeError, match="stop"):
             s.process(b.rgb, b.depth, odometry=odo1)
         err = math.degrees(rotation_angle(seen["init"][:3, :3] @ vm1[:3, :3].T))
-        if on:
-            assert err < 0.1, err
+        pos_err = float(np.linalg.norm(disp(seen["init"]) - disp(vm1)))
+        if trans is not None:  # OpenCV's displacement too
+            assert err < 0.1 and pos_err < 2e-3, (err, pos_err)
+            assert seen["q"][3, 3] == pytest.approx(cfg.prior_weight / trans ** 2)
+        elif on:
+            assert err < 0.1 and pos_err > 3e-3, (err, pos_err)
             assert seen["q"][0, 0] == pytest.approx(cfg.prior_weight / cfg.f2f_rot_sigma ** 2)
         else:
             assert err > 0.5, err
