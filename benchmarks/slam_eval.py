@@ -65,7 +65,9 @@ def _run(name: str, seq, job: MapJob, out: str) -> dict:
         f.write(json.dumps(rec) + "\n")
     ev = summary.get("train") or {}
     ho = summary.get("held_out") or {}
-    print(f"{name}: train PSNR {ev.get('psnr', float('nan')):.2f} dB, held-out {ho.get('psnr', float('nan')):.2f}, "
+    hot = summary.get("held_out_tracked") or {}
+    print(f"{name}: train PSNR {ev.get('psnr', float('nan')):.2f} dB, held-out {ho.get('psnr', float('nan')):.2f} "
+          f"(at tracked poses {hot.get('psnr', float('nan')):.2f}), "
           f"ATE {100 * summary.get('ate', {}).get('rmse', float('nan')):.2f} cm, "
           f"track {rec['timing']['median_track_s']} s, map {rec['timing']['median_map_s']} s, "
           f"load {load0:.1f}->{rec['load_end']:.1f}"

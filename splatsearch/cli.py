@@ -170,7 +170,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
         line += f", tracking {tm['median_track_s']:.2f} s"
     console.print(line)
     for label, key in (("training views", "train"), ("training views at GT poses", "train_at_gt_pose"),
-                       ("keyframes, own exposure applied", "train_keyframes_exposure"), ("held-out views", "held_out")):
+                       ("keyframes, own exposure applied", "train_keyframes_exposure"), ("held-out views", "held_out"),
+                       ("held-out views at poses tracked in the map", "held_out_tracked")):
         ev = summary.get(key)
         if ev:
             console.print(f"{label}: PSNR {ev['psnr']:.2f} dB ({ev['psnr_valid']:.2f} dB where depth is valid), "

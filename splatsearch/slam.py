@@ -789,6 +789,18 @@ class SLAM:
         self._apply_refined({f.tag: f.viewmat for f in self.mapper.keyframes if f.tag is not None and f.refine_pose})
         return loss
 
+    def localize(self, rgb, depth, init_viewmat) -> np.ndarray:
+        """Pose (4, 4) of a frame tracked against the current map from ``init_viewmat`` (no prior,
+        nothing mapped): how a held-out view is placed in the map's own frame for evaluation.
+        rgb (H, W, 3) [0, 1]; depth (H, W) m. Returns ``init_viewmat`` when tracking fails."""
+        depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        c = self.mapper.cfg
+        if c.min_depth > 0 or np.isfinite(c.max_depth) or c.depth_edge_rel > 0:
+            depth = clean_depth(depth, c.min_depth, c.max_depth, c.depth_edge_rel)
+        tr = track(self.mapper.map, np.asarray(rgb, np.float32), depth, init_viewmat, self.K, self.mapper.W,
+                   self.mapper.H, self.tcfg)
+        return np.asarray(tr.viewmat if tr.status == "ok" else init_viewmat, np.float32)
+
     def observe(self, rgb, depth, odometry=None) -> str | None:
         """Show the tracker a frame that is neither tracked nor mapped (a held-out view): with
         ``TrackerConfig.f2f_prior`` and ``odometry`` (4, 4), it becomes the next frame-to-frame
