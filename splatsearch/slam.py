@@ -32,8 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from splatsearch.gaussians import GaussianMap, render_args
 from splatsearch import odometry_f2f
+from splatsearch.gaussians import GaussianMap, render_args
 from splatsearch.mapper import Mapper, MapperConfig, _bucket, _gather_rows
 from splatsearch.precision import full_precision
 from splatsearch.rasterization import rasterize
@@ -820,7 +820,7 @@ class SLAM:
         """Add the OpenCV step from the reference frame to this one to the chain; its status."""
         if self._f2f_ref is None or self._f2f_ref_odom is None or odometry is None:
             self._f2f_acc, self._f2f_link = None, "failed"
-            return None
+            return "failed"
         odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._f2f_ref_odom)
         step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K, max_depth_diff=self.tcfg.f2f_max_depth_diff)
         if step is not None and self.tcfg.planar:
