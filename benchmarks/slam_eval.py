@@ -65,11 +65,14 @@ def _run(name: str, seq, job: MapJob, out: str) -> dict:
         f.write(json.dumps(rec) + "\n")
     ev = summary.get("train") or {}
     ho = summary.get("held_out") or {}
-    print(f"{name}: train PSNR {ev.get('psnr', float('nan')):.2f} dB, held-out {ho.get('psnr', float('nan')):.2f}, "
+    hot = summary.get("held_out_tracked") or {}
+    print(f"{name}: train PSNR {ev.get('psnr', float('nan')):.2f} dB, held-out {ho.get('psnr', float('nan')):.2f} "
+          f"(at tracked poses {hot.get('psnr', float('nan')):.2f}), "
           f"ATE {100 * summary.get('ate', {}).get('rmse', float('nan')):.2f} cm, "
           f"track {rec['timing']['median_track_s']} s, map {rec['timing']['median_map_s']} s, "
           f"load {load0:.1f}->{rec['load_end']:.1f}"
           + (f", odometry ATE {100 * summary['ate_odometry']['rmse']:.2f} cm" if "ate_odometry" in summary else "")
+          + (f", f2f {summary['f2f']}" if summary.get("f2f") else "")
           + (f", keyframes with exposure {summary['train_keyframes_exposure']['psnr']:.2f} dB"
              if "train_keyframes_exposure" in summary else ""), flush=True)
     return rec
@@ -122,6 +125,20 @@ def main(argv=None) -> int:
     p.add_argument("--prior-lateral", default=d.prior_lateral_sigma, type=_lateral,
                    help="odometry prior's sigma across the direction moved, as a fraction of the distance, or "
                         f"'off' (the same as along it; default {d.prior_lateral_sigma})")
+    p.add_argument("--f2f-prior", action=argparse.BooleanOptionalAction, default=d.f2f_prior,
+                   help="frame-to-frame rotation prior from OpenCV's RGB-D odometry between consecutive raw "
+                        f"frames, gated by the odometry (default {'on' if d.f2f_prior else 'off'})")
+    p.add_argument("--f2f-rot-sigma", type=float, default=d.f2f_rot_sigma,
+                   help=f"rotation sigma (rad) of an accepted frame-to-frame step (default {d.f2f_rot_sigma:g})")
+    p.add_argument("--f2f-max-depth-diff", type=float, default=d.f2f_max_depth_diff,
+                   help="OpenCV's ICP correspondence depth limit (m) of the frame-to-frame odometry "
+                        f"(default {d.f2f_max_depth_diff:g})")
+    p.add_argument("--f2f-trans-sigma", type=float, default=d.f2f_trans_sigma,
+                   help="also take an accepted frame-to-frame step's displacement, with this sigma in m "
+                        f"(default {d.f2f_trans_sigma}: rotation only)")
+    p.add_argument("--odometry-seed", type=int, default=None,
+                   help="seed of the simulator walk's odometry noise (default: the house seed, so each house "
+                        "has its own noise sequence)")
     p.add_argument("--track-downscale", type=int, default=1, help="tracking image divisor (default 1)")
     p.add_argument("--rgbd-odometry", action="store_true", help="start tracking from OpenCV RGB-D odometry")
     p.add_argument("--planar", action="store_true", help="track planar motions only (ground robot)")
@@ -142,7 +159,9 @@ def main(argv=None) -> int:
                          prior_weight=a.prior_weight, prior_lateral_sigma=a.prior_lateral,
                          prior_rot_sigma=a.prior_rot_sigma, solver=a.track_solver, gn_iters=a.track_gn_iters,
                          prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol,
-                         map_min_info=a.map_min_info, map_skip_max=a.map_skip_max)
+                         map_min_info=a.map_min_info, map_skip_max=a.map_skip_max, f2f_prior=a.f2f_prior,
+                         f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff,
+                         f2f_trans_sigma=a.f2f_trans_sigma)
     try:
         tcfg.validate()
     except ValueError as e:
@@ -176,7 +195,8 @@ def main(argv=None) -> int:
         if go("tum_gt_holdout"):
             _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5, refine=REAL_REFINE), a.out)
     else:
-        seq = datasets.sim_walk(a.seed, a.frames, 320, 240)
+        seq = datasets.sim_walk(a.seed, a.frames, 320, 240,
+                                odometry_seed=a.seed if a.odometry_seed is None else a.odometry_seed)
         if go("sim_gt"):
             _run("sim_gt", seq, MapJob(MapperConfig(**SIM), tcfg, holdout_every=8), a.out)
         if go("sim_track"):

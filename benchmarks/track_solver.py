@@ -1,7 +1,7 @@
 """Tracking solvers side by side: Adam (40 steps) vs Levenberg-Marquardt ("gn"), alternating in one process.
 
     python benchmarks/track_solver.py [--data sim,tum] [--seed 0] [--planar] [--map-frames 12]
-                                      [--track-frames 8] [--rounds 2] [--gn-iters 8] [--gn-loss-tol 1e-3]
+                                      [--track-frames 8] [--rounds 2] [--gn-iters 8] [--gn-loss-tol TOL]
 
 Same maps and frames as ``track_speed.py`` (a map fitted with ground-truth poses to the first
 ``--map-frames`` frames, the next ``--track-frames`` tracked against it frozen; simulator:
@@ -33,9 +33,9 @@ def main(argv=None) -> int:
     ap.add_argument("--track-frames", type=int, default=8, help="frames tracked after them (default 8)")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds over the tracked frames (default 2)")
     ap.add_argument("--gn-iters", type=int, default=8, help="most Levenberg-Marquardt iterations (default 8)")
-    ap.add_argument("--gn-loss-tol", type=float, default=1e-3,
+    ap.add_argument("--gn-loss-tol", type=float, default=None,
                     help="GN stops after an accepted step that lowers the loss by less than this fraction "
-                         "(default 1e-3, TrackerConfig's)")
+                         "(default: TrackerConfig's gn_loss_tol)")
     ap.add_argument("--solvers", default="adam,gn", help="comma-separated subset of adam,gn (default both)")
     a = ap.parse_args(argv)
     data = a.data.split(",")
@@ -48,6 +48,10 @@ def main(argv=None) -> int:
         ap.error("seeds >= 1000 are evaluation houses: never tuned on")
     if a.map_frames < 1 or a.track_frames < 1 or a.rounds < 1 or a.gn_iters < 1:
         ap.error("--map-frames, --track-frames, --rounds and --gn-iters must be >= 1")
+    if a.gn_loss_tol is None:
+        from splatsearch.slam import TrackerConfig
+
+        a.gn_loss_tol = TrackerConfig().gn_loss_tol
     if not a.gn_loss_tol >= 0:
         ap.error("--gn-loss-tol must be >= 0")
     if "tum" in data and a.map_frames + a.track_frames > 10:

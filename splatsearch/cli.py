@@ -103,7 +103,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
     from splatsearch import datasets
     from splatsearch.map_job import MapJob, map_sequence
     from splatsearch.mapper import MapperConfig
-    from splatsearch.slam import TrackerConfig, parse_lateral_sigma
+    from splatsearch.tracking_args import flags_needing_track, tracker_config
 
     console = Console()
     data = args.data or args.tum
@@ -137,31 +137,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
     from splatsearch.cli_config import apply_overrides, config_overrides
 
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
-    tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale,
-                         rgbd_odometry=args.track_rgbd_odometry, planar=args.track_planar)
-    if args.track_solver is not None:
-        tcfg.solver = args.track_solver
-    if args.track_gn_iters is not None:
-        tcfg.gn_iters = args.track_gn_iters
-    if args.track_coarse_iters is not None:
-        tcfg.coarse_iters = args.track_coarse_iters
-    if args.track_patience is not None:
-        tcfg.patience = args.track_patience
-    if args.track_prior_weight is not None:
-        tcfg.prior_weight = args.track_prior_weight
-    if args.track_prior_lateral is not None:
-        tcfg.prior_lateral_sigma = parse_lateral_sigma(args.track_prior_lateral)
-    tcfg.validate()
-    needs_track = [flag for flag, on in (("--track-from-gt", args.track_from_gt),
-                                         ("--track-rgbd-odometry", args.track_rgbd_odometry),
-                                         ("--track-planar", args.track_planar),
-                                         ("--pose-refine", args.pose_refine),
-                                         ("--track-coarse-iters", args.track_coarse_iters is not None),
-                                         ("--track-solver", args.track_solver is not None),
-                                         ("--track-gn-iters", args.track_gn_iters is not None),
-                                         ("--track-patience", args.track_patience is not None),
-                                         ("--track-prior-weight", args.track_prior_weight is not None),
-                                         ("--track-prior-lateral", args.track_prior_lateral is not None)) if on]
+    tcfg = tracker_config(args)
+    needs_track = flags_needing_track(args)
     if needs_track and not args.track:
         raise ValueError(f"{', '.join(needs_track)}: only with --track (these options act on tracked poses)")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
@@ -193,7 +170,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
         line += f", tracking {tm['median_track_s']:.2f} s"
     console.print(line)
     for label, key in (("training views", "train"), ("training views at GT poses", "train_at_gt_pose"),
-                       ("keyframes, own exposure applied", "train_keyframes_exposure"), ("held-out views", "held_out")):
+                       ("keyframes, own exposure applied", "train_keyframes_exposure"), ("held-out views", "held_out"),
+                       ("held-out views at poses tracked in the map", "held_out_tracked")):
         ev = summary.get(key)
         if ev:
             console.print(f"{label}: PSNR {ev['psnr']:.2f} dB ({ev['psnr_valid']:.2f} dB where depth is valid), "
@@ -439,9 +417,6 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--track", action="store_true",
                    help="estimate camera poses by tracking against the map (first pose: ground truth if known, "
                         "else identity); ground-truth poses are then used only for ATE")
-    m.add_argument("--track-from-gt", action="store_true",
-                   help="with --track: start each frame's tracking from its ground-truth pose (refines ground "
-                        "truth that is not pixel-exact, e.g. TUM's motion capture)")
     m.add_argument("--odometry", action="store_true",
                    help="simulator only: use the walk's noisy odometry as the tracking prior (with --track)")
     m.add_argument("--odometry-noise", type=float, nargs=2, default=(0.05, 0.01), metavar=("TRANS", "ROT"),
@@ -464,40 +439,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                                                          "(default 0)")
     m.add_argument("--keyframe-every", type=int, default=5,
                    help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
-    m.add_argument("--track-iters", type=int, default=40,
-                   help="with --track-solver adam: most tracking Adam steps per frame at the tracking size, after "
-                        "the coarse ones (default 40; the fast setting: 8 with --track-coarse-iters 30 "
-                        "--track-patience 5)")
-    m.add_argument("--track-solver", choices=("adam", "gn"), default=None,
-                   help="with --track: the pose solver: 'gn' (Levenberg-Marquardt on reweighted L1 residuals, "
-                        "at most --track-gn-iters steps; the default) or 'adam' (SplaTAM's first-order steps, "
-                        "--track-iters; 4-6x slower a frame)")
-    m.add_argument("--track-gn-iters", type=positive_int, default=None,
-                   help="with --track-solver gn: most Levenberg-Marquardt steps per frame "
-                        "(default: TrackerConfig's, 10)")
-    m.add_argument("--track-coarse-iters", type=int, default=None,
-                   help="most tracking Adam steps first on images 4x smaller still "
-                        "(0: none; default 0)")
-    m.add_argument("--track-patience", type=int, default=None,
-                   help="a tracking stage stops once its loss has not fallen by a fraction "
-                        "1e-3 for this many steps (0: run every step; default 0)")
-    m.add_argument("--track-prior-weight", type=float, default=None,
-                   help="weight of the odometry prior in the tracking loss, per squared standard deviation of the "
-                        "odometry's noise (0: odometry is only the initial guess; default 0.001)")
-    m.add_argument("--track-prior-lateral", default=None, metavar="FRACTION|off",
-                   help="odometry prior's standard deviation across the direction the odometry moved, as a "
-                        "fraction of the distance (a wheeled robot barely slips sideways; default 0.01), or 'off' "
-                        "for odometry that can slip sideways (then the same as along it)")
-    m.add_argument("--track-rgbd-odometry", action="store_true",
-                   help="with --track: start each frame's tracking from OpenCV's RGB-D odometry between a "
-                        "render of the map and the frame (one render, a few ms), then run --track-iters "
-                        "Adam steps (default: off)")
-    m.add_argument("--track-downscale", type=int, default=1,
-                   help="track on images this many times smaller (faster; default 1)")
-    m.add_argument("--track-planar", action="store_true",
-                   help="with --track: a ground robot's camera (world z up): only horizontal translation and "
-                        "turns about the vertical are estimated, so height, roll and pitch cannot drift "
-                        "(default: off, full 6-DoF)")
+    from splatsearch.tracking_args import add_track_args
+
+    add_track_args(m)
     m.add_argument("--pose-refine", action="store_true",
                    help="with --track: refine the tracked keyframe poses jointly with the map during mapping "
                         "(a local bundle adjustment through the renderer; default: off)")

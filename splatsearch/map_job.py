@@ -67,14 +67,22 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
     interrupted = False
     t_start = time.perf_counter()
     try:
-        for k, i in enumerate(train):
+        held_set = set(held)
+        k = 0
+        for i in range(len(seq)):
             f = seq.frames[i]
+            if i in held_set:
+                # a held-out view is never mapped, but it links the frame-to-frame chain
+                if job.track and job.use_odometry:
+                    slam.observe(f.rgb, f.depth, seq.odometry[i])
+                continue
             odo = seq.odometry[i] if job.use_odometry else None
             given = f.viewmat if (not job.track or k == 0) else None
             prior = f.viewmat if (job.track and job.gt_prior) else None
             r = slam.process(f.rgb, f.depth, given, odometry=odo, prior=prior)
+            k += 1
             if progress is not None:
-                progress(r, k + 1, len(train))
+                progress(r, k, len(train))
         if job.refine:
             slam.refine(job.refine)
     except KeyboardInterrupt:
@@ -106,13 +114,16 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
                        "track_cpu_s": round(r.track.cpu_seconds, 4) if r.track else None,
                        "track_steps": r.track.steps if r.track else None,
                        "track_loss": _finite(r.track.loss) if r.track else None,
-                       "track_rot_info": _finite(r.track.rot_info) if r.track else None}
+                       "track_rot_info": _finite(r.track.rot_info) if r.track else None, "f2f": r.f2f}
                       for i, r in zip(done, slam.results)],
     }
+    f2f = [r.f2f for r in slam.results if r.f2f is not None]
+    summary["f2f"] = {s: f2f.count(s) for s in ("accepted", "rejected", "failed")} if f2f else None
     bad = [(int(i), r.status) for i, r in zip(done, slam.results) if r.status.startswith("skipped")]
     summary["bad_frames"] = bad
     # evaluation: training views at the estimated poses (what the map was fitted to), held-out
     # views at their ground-truth poses (the map lives in the first frame's ground-truth frame)
+    # and, when tracking, at poses tracked against the final map (held_out_tracked)
     ok = [(i, p) for i, p, r in zip(done, est, slam.results) if r.mapped]
     summary["train"] = slam.mapper.evaluate([Frame(seq.frames[i].rgb, seq.frames[i].depth, p) for i, p in ok]) \
         if ok else None
@@ -125,6 +136,8 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
             summary["train_at_gt_pose"] = slam.mapper.evaluate([seq.frames[i] for i in ok_gt])
         held_ok = [seq.frames[i] for i in held if np.all(np.isfinite(gt[i]))]
         summary["held_out"] = slam.mapper.evaluate(held_ok) if held_ok and ok else None
+        if job.track and held_ok and ok:
+            summary["held_out_tracked"] = slam.mapper.evaluate(_localized(slam, seq, job, held, done, est, gt))
         if len(done) >= 2:
             a = ate(est, gt[done])
             summary["ate"] = {k: a[k] for k in ("rmse", "mean", "median", "max", "n")}
@@ -142,6 +155,27 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
         write_tum(os.path.join(out, "trajectory.txt"), ts, est)
         io.atomic_write_bytes(os.path.join(out, "summary.json"), json.dumps(summary, indent=1).encode())
     return slam, summary
+
+
+def _localized(slam: SLAM, seq: RGBDSequence, job: MapJob, held: list[int], done: list[int], est: np.ndarray,
+               gt: np.ndarray) -> list[Frame]:
+    """Held-out frames at poses tracked against the final map, each started from the last earlier
+    training frame's estimate (moved by the odometry's step when the job uses odometry). A tracked
+    map lives in its own slightly drifted frame; this scores the map where the robot would place
+    the view, apart from the trajectory's error (SplaTAM renders every frame at its estimate)."""
+    out = []
+    for i in held:
+        if not np.all(np.isfinite(gt[i])):
+            continue
+        prev = [(j, p) for j, p in zip(done, est) if j < i and np.all(np.isfinite(p))]
+        if not prev:
+            continue
+        j, init = prev[-1][0], prev[-1][1].astype(np.float64)
+        if job.use_odometry:
+            init = seq.odometry[i].astype(np.float64) @ np.linalg.inv(seq.odometry[j].astype(np.float64)) @ init
+        f = seq.frames[i]
+        out.append(Frame(f.rgb, f.depth, slam.localize(f.rgb, f.depth, init.astype(np.float32))))
+    return out
 
 
 def _finite(x: float) -> float | None:

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from splatsearch import odometry_f2f
 from splatsearch.gaussians import GaussianMap, render_args
 from splatsearch.mapper import Mapper, MapperConfig, _bucket, _gather_rows
 from splatsearch.precision import full_precision
@@ -180,6 +181,16 @@ class TrackerConfig:
     "gn" only; 0: off): :class:`SLAM` tracks but does not map a frame whose ``rot_info`` is below
     this fraction of that median (its pose is poorly fixed, and what it would add to the map would
     carry its heading error into later frames), at most ``map_skip_max`` frames in a row.
+
+    Frame-to-frame rotation prior (``f2f_prior``, default on; acts only when :class:`SLAM` gets the
+    robot's odometry): OpenCV's RGB-D odometry between the previous raw frame and the current one
+    (:mod:`splatsearch.odometry_f2f`, through frames given to :meth:`SLAM.observe` too), accepted
+    when its rotation and displacement agree with the wheel odometry's step within 3 sigma of the
+    prior above (planar: its yaw only). An accepted rotation replaces the wheel odometry's in the
+    prediction, and the prior's rotation sigma becomes ``f2f_rot_sigma`` rad. f2f_max_depth_diff
+    (m): OpenCV's ICP correspondence limit (see :func:`~splatsearch.odometry_f2f.f2f_step`).
+    f2f_trans_sigma (m, None: off): an accepted step's camera displacement replaces the wheel
+    odometry's too (planar: its horizontal part), with this sigma on each axis.
     """
 
     iters: int = 40
@@ -220,8 +231,18 @@ class TrackerConfig:
     prior_info_window: int = 20
     map_min_info: float = 0.0
     map_skip_max: int = 5
+    f2f_prior: bool = True
+    f2f_rot_sigma: float = 1e-3
+    f2f_max_depth_diff: float = 0.07
+    f2f_trans_sigma: float | None = None
 
     def validate(self) -> None:
+        if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
+            raise ValueError(f"f2f_rot_sigma must be a finite value > 0, got {self.f2f_rot_sigma}")
+        if self.f2f_trans_sigma is not None and not (self.f2f_trans_sigma > 0 and math.isfinite(self.f2f_trans_sigma)):
+            raise ValueError(f"f2f_trans_sigma must be None or a finite value > 0, got {self.f2f_trans_sigma}")
+        if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
+            raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if self.gn_iters < 1 or not (self.gn_fd_step > 0 and self.gn_eps_depth > 0 and self.gn_eps_color > 0
@@ -590,7 +611,9 @@ class FrameResult:
     "skipped_bad_pose" (a given pose that is not finite), "tracked" (tracked, not mapped: the image
     fixed its rotation too weakly, ``TrackerConfig.map_min_info``) or "skipped_tracking" (diverged: the
     pose is the prediction, the frame is not mapped); track: the :class:`TrackResult` when
-    tracked; t_track, t_map: seconds; stats: the mapper's update stats when mapped.
+    tracked; t_track, t_map: seconds; stats: the mapper's update stats when mapped; f2f: what the
+    frame-to-frame rotation prior did ("accepted", "rejected": OpenCV disagreed with the wheel
+    odometry, "failed": OpenCV found no motion, None: not tried).
     """
 
     index: int
@@ -600,6 +623,7 @@ class FrameResult:
     t_track: float = 0.0
     t_map: float = 0.0
     stats: dict = field(default_factory=dict)
+    f2f: str | None = None
 
     @property
     def mapped(self) -> bool:
@@ -633,6 +657,13 @@ class SLAM:
         self._last_odom: np.ndarray | None = None
         self._rot_info: list[float] = []  # TrackResult.rot_info of the frames tracked "ok"
         self._unmapped = 0  # frames in a row tracked but not mapped (map_min_info)
+        # frame-to-frame chain: the last raw frame seen (processed or observed), its odometry, and
+        # the OpenCV motion accumulated since the last processed frame (None: a link failed)
+        self._f2f_ref: tuple[np.ndarray, np.ndarray] | None = None
+        self._f2f_ref_odom: np.ndarray | None = None
+        self._f2f_acc: np.ndarray | None = np.eye(4)
+        self._f2f_link: str | None = None  # the worst link status since the last processed frame
+        self._f2f_status: str | None = None  # this frame's, for its FrameResult
 
     @property
     def K(self):
@@ -677,6 +708,25 @@ class SLAM:
         if odometry is not None and self._last_odom is not None and np.all(np.isfinite(odometry)) \
                 and self.tcfg.prior_weight > 0:
             prior_q = self.tcfg.prior_precision(np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom))
+        f2f_status = None
+        if prior_q is not None and prior is None and self.track_enabled and not first and self.tcfg.f2f_prior:
+            self._f2f_link_to(rgb, depth, odometry)
+            f2f_status = self._f2f_link
+            if self._f2f_acc is not None and self._f2f_link == "accepted":
+                rel_odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom)
+                last = [p for p in self.poses if np.all(np.isfinite(p))][-1].astype(np.float64)
+                prior_q = prior_q.copy()
+                prior_q[:3, :3] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_rot_sigma ** 2)
+                if self.tcfg.f2f_trans_sigma is None:
+                    step = odometry_f2f.prior_step(rel_odo, self._f2f_acc)
+                else:  # OpenCV's displacement too
+                    step = self._f2f_acc
+                    if self.tcfg.planar:
+                        step = odometry_f2f.horizontal_step(step, self._last_odom[:3, 2])
+                    prior_q[3:, 3:] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_trans_sigma ** 2)
+                pred = (step @ last).astype(np.float32)
+        self._f2f_reset(rgb, depth, odometry)
+        self._f2f_status = f2f_status
         if prior is not None and np.all(np.isfinite(prior)):
             pred, prior_q = np.asarray(prior, np.float32), None
         if odometry is not None and np.all(np.isfinite(odometry)):
@@ -739,7 +789,62 @@ class SLAM:
         self._apply_refined({f.tag: f.viewmat for f in self.mapper.keyframes if f.tag is not None and f.refine_pose})
         return loss
 
+    def localize(self, rgb, depth, init_viewmat) -> np.ndarray:
+        """Pose (4, 4) of a frame tracked against the current map from ``init_viewmat`` (no prior,
+        nothing mapped): how a held-out view is placed in the map's own frame for evaluation.
+        rgb (H, W, 3) [0, 1]; depth (H, W) m. Returns ``init_viewmat`` when tracking fails."""
+        depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        c = self.mapper.cfg
+        if c.min_depth > 0 or np.isfinite(c.max_depth) or c.depth_edge_rel > 0:
+            depth = clean_depth(depth, c.min_depth, c.max_depth, c.depth_edge_rel)
+        tr = track(self.mapper.map, np.asarray(rgb, np.float32), depth, init_viewmat, self.K, self.mapper.W,
+                   self.mapper.H, self.tcfg)
+        return np.asarray(tr.viewmat if tr.status == "ok" else init_viewmat, np.float32)
+
+    def observe(self, rgb, depth, odometry=None) -> str | None:
+        """Show the tracker a frame that is neither tracked nor mapped (a held-out view): with
+        ``TrackerConfig.f2f_prior`` and ``odometry`` (4, 4), it becomes the next frame-to-frame
+        reference, so the chain of raw frames has no gap. rgb (H, W, 3) [0, 1]; depth (H, W) m.
+        Returns the link's status ("accepted", "rejected", "failed") or None when not tried."""
+        if not (self.track_enabled and self.tcfg.f2f_prior and odometry is not None
+                and np.all(np.isfinite(odometry)) and self._f2f_ref is not None):
+            return None
+        rgb = np.asarray(rgb, np.float32)
+        depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        status = self._f2f_link_to(rgb, depth, odometry)
+        if np.all(np.isfinite(rgb)):
+            self._f2f_ref, self._f2f_ref_odom = (rgb, depth), np.asarray(odometry, np.float64)
+        return status
+
+    def _f2f_link_to(self, rgb: np.ndarray, depth: np.ndarray, odometry) -> str | None:
+        """Add the OpenCV step from the reference frame to this one to the chain; its status."""
+        if self._f2f_ref is None or self._f2f_ref_odom is None or odometry is None:
+            self._f2f_acc, self._f2f_link = None, "failed"
+            return "failed"
+        odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._f2f_ref_odom)
+        step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K, max_depth_diff=self.tcfg.f2f_max_depth_diff)
+        if step is not None and self.tcfg.planar:
+            step = odometry_f2f.planar_yaw_only(step, self._f2f_ref_odom[:3, 2])
+        sr, st = self.tcfg.prior_sigma(odo)
+        status = "failed" if step is None else ("accepted" if odometry_f2f.gate_step(step, odo, sr, st) else "rejected")
+        if status != "accepted" or self._f2f_acc is None:
+            self._f2f_acc = None
+        else:
+            self._f2f_acc = step @ self._f2f_acc
+        rank = {None: 0, "accepted": 1, "rejected": 2, "failed": 3}
+        if rank[status] > rank[self._f2f_link]:
+            self._f2f_link = status
+        return status
+
+    def _f2f_reset(self, rgb: np.ndarray, depth: np.ndarray, odometry) -> None:
+        """A processed frame starts a new chain."""
+        ok = odometry is not None and np.all(np.isfinite(odometry)) and np.all(np.isfinite(rgb))
+        self._f2f_ref = (rgb, depth) if ok and self.tcfg.f2f_prior else None
+        self._f2f_ref_odom = np.asarray(odometry, np.float64) if ok else None
+        self._f2f_acc, self._f2f_link = np.eye(4), None
+
     def _finish(self, res: FrameResult) -> FrameResult:
+        res.f2f, self._f2f_status = self._f2f_status, None
         self.poses.append(np.asarray(res.viewmat, np.float32))
         self.results.append(res)
         return res
