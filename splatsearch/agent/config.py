@@ -58,10 +58,10 @@ class AgentConfig:
     with ``map_iters`` Adam steps and densify stride ``map_stride`` px. The online map serves
     lifting and the viewer; the NVSM renders object-local maps at full resolution
     (``local_map``: :class:`~splatsearch.search.local_map.LocalMapConfig`). ``nvsm_fill``:
-    "global" composites the online map's renders of the same cameras under the local map's
-    (what the local map never covered, up to the view's edge, shows the coarse online map
-    instead of a hole; cropped to the local map's region when ``nvsm_fill_crop``), "none"
-    leaves those pixels holes.
+    "global" composites the online map's renders of the NVSM cameras under the local map's, so
+    that what the local map never covered, up to the view's edge, shows the coarse online map
+    instead of a hole ("none" leaves them holes). ``nvsm_fill_crop``: that online-map
+    render is cropped to the local map's region (False: the whole house).
 
     Identification: ``tau_m`` (inliers) is eq 18's match threshold on camera-image counts,
     ``nvsm_tau_m`` the same for rendered views (matched with a lower SIFT contrast threshold); an
