@@ -33,10 +33,38 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from nvsm_views import load_views  # noqa: E402
+from nvsm_views import _u8, load_views, split_views  # noqa: E402
 
 #: inpainter choices that read stored views instead of building a plug-in
 STORED = ("raw", "opencv")
+#: --fill choices: the online map's renders (uncropped or cropped to the local map's region)
+#: composited under the local map's before the holes are found, as ``AgentConfig.nvsm_fill`` does
+FILLS = {"none": None, "global": ("grgb", "galpha"), "global-crop": ("gcrgb", "gcalpha")}
+
+
+def apply_fill(d: dict, fill: str, alpha_tau: float = 0.5, crop_fill: float = 0.5) -> dict:
+    """The episode arrays ``d`` as the NVSM would have seen them with ``fill`` (see :data:`FILLS`):
+    the local map's renders (``local``, over black) composited over the stored online-map
+    renders, holes found again at ``alpha_tau``, background greyed to ``crop_fill`` and the OpenCV
+    views inpainted again (``split_views``), so every row scores the filled views. ``none``
+    returns ``d`` unchanged. Needs a dump with ``local`` and the online-map renders."""
+    from splatsearch.search.inpainting import OpenCVInpainter, holes_from_alpha
+    from splatsearch.search.novel_views import composite_under
+
+    if fill not in FILLS:
+        raise ValueError(f"fill must be one of {list(FILLS)}, got {fill!r}")
+    if FILLS[fill] is None:
+        return d
+    krgb, kalpha = FILLS[fill]
+    if krgb not in d or "local" not in d:
+        raise ValueError("this episode file has no online-map renders (dump it again with nvsm_views.py)")
+    rgb, alpha = composite_under(d["local"].astype(np.float32) / 255.0, d["alpha"].astype(np.float32) / 255.0,
+                                 d[krgb].astype(np.float32) / 255.0, d[kalpha].astype(np.float32) / 255.0)
+    rendered, holes, background = split_views(rgb, holes_from_alpha(alpha, alpha_tau), alpha, alpha_tau, crop_fill)
+    out = dict(d)
+    out.update(rendered=_u8(rendered), alpha=_u8(alpha), holes=holes, background=background,
+               opencv=_u8(OpenCVInpainter().inpaint(rendered, holes)))
+    return out
 
 
 def _views_of(d: dict, run: int, inpainter, name: str, holes_mode: str = "nvsm") -> np.ndarray:
@@ -65,16 +93,16 @@ def _views_of(d: dict, run: int, inpainter, name: str, holes_mode: str = "nvsm")
 
 
 def object_scores(files: list[str], matcher, inpainter_name: str, inpainter=None, progress=None,
-                  holes_mode: str = "nvsm") -> list[dict]:
+                  holes_mode: str = "nvsm", fill: str = "none") -> list[dict]:
     """One record per (episode, instance): ``episode`` (file name), ``instance``, ``is_goal``,
     ``best`` (the best count over the views of all its runs), ``runs``, ``per_run`` (best per run).
     ``holes_mode``: "nvsm" (the masks the NVSM gives each inpainter) or "interior" (every plug-in
-    gets only the enclosed holes)."""
+    gets only the enclosed holes). ``fill``: see :func:`apply_fill`."""
     from splatsearch.search.matching import best_view
 
     out = []
     for f in files:
-        d = load_views(f)
+        d = apply_fill(load_views(f), fill)
         goal = d["goal"]
         per: dict[int, dict] = {}
         for r in range(len(d["run_entry"])):
@@ -163,6 +191,10 @@ def main(argv=None) -> int:
                     help="holes a plug-in inpainter completes: 'nvsm' as the NVSM calls it (the VCICN also gets the "
                          "background cut away by the region crop) or 'interior' (enclosed holes only, background left "
                          "grey); default: nvsm")
+    ap.add_argument("--fill", action="append", choices=list(FILLS), default=None,
+                    help="composite the stored online-map renders under the local map's before completion, as "
+                         "AgentConfig.nvsm_fill does: 'global' (uncropped), 'global-crop' (the local map's region); "
+                         "repeat for several (default: none)")
     ap.add_argument("--per-object", action="store_true", help="print the per-object table of every row")
     ap.add_argument("--out", default=None, help="JSON file to write (atomically; default: none)")
     args = ap.parse_args(argv)
@@ -179,7 +211,8 @@ def main(argv=None) -> int:
     console = Console()
     n_runs = sum(len(np.load(f)["run_entry"]) for f in files)
     rows, skipped = [], []
-    for inp_name in inpainters:
+    fills = args.fill or ["none"]
+    for fill, inp_name in ((f, i) for f in fills for i in inpainters):
         try:
             inpainter = build_inpainter(inp_name)
         except (ValueError, FileNotFoundError, ImportError, OSError) as e:
@@ -189,16 +222,16 @@ def main(argv=None) -> int:
         for spec in matchers:
             matcher = make_matcher(spec, renders=True)
             t0 = time.perf_counter()
-            recs = object_scores(files, matcher, inp_name, inpainter, holes_mode=args.holes)
+            recs = object_scores(files, matcher, inp_name, inpainter, holes_mode=args.holes, fill=fill)
             sep = separation(recs)
             sep["auc_ci95"] = bootstrap_auc(recs)
-            row = {"inpainter": inp_name, "matcher": spec, "holes": args.holes, **sep, "seconds": round(time.perf_counter() - t0, 1),
+            row = {"inpainter": inp_name, "matcher": spec, "holes": args.holes, "fill": fill, **sep, "seconds": round(time.perf_counter() - t0, 1),
                    "load1": round(os.getloadavg()[0], 2), "objects": recs}
             rows.append(row)
             auc = "n/a" if sep["auc"] is None else f"{sep['auc']:.3f}"
             if sep["auc_ci95"] is not None:
                 auc += " [{:.2f}, {:.2f}]".format(*sep["auc_ci95"])
-            console.print(f"{inp_name:>8} | {spec:<40} | AUC {auc} | goal {sep['mean_goal']:.1f} vs look-alike "
+            console.print(f"{fill:>11} | {inp_name:>8} | {spec:<40} | AUC {auc} | goal {sep['mean_goal']:.1f} vs look-alike "
                           f"{sep['mean_lookalike']:.1f} | paired W/T/L {sep['wins']}/{sep['ties']}/{sep['losses']} "
                           f"| {row['seconds']} s")
             if args.per_object:
@@ -208,12 +241,12 @@ def main(argv=None) -> int:
                               " ".join(map(str, r["per_run"])))
                 console.print(t)
     t = Table(title=f"{args.views}: {len(files)} episodes, {n_runs} NVSM runs")
-    for c in ("inpainter", "matcher", "ROC AUC", "95% CI (episodes)", "goals", "look-alikes", "mean goal", "mean look-alike",
+    for c in ("fill", "inpainter", "matcher", "ROC AUC", "95% CI (episodes)", "goals", "look-alikes", "mean goal", "mean look-alike",
               "paired W/T/L"):
         t.add_column(c)
     for r in rows:
         ci = "n/a" if r["auc_ci95"] is None else "{:.2f}-{:.2f}".format(*r["auc_ci95"])
-        t.add_row(r["inpainter"], r["matcher"], "n/a" if r["auc"] is None else f"{r['auc']:.3f}", ci, str(r["n_goal"]),
+        t.add_row(r["fill"], r["inpainter"], r["matcher"], "n/a" if r["auc"] is None else f"{r['auc']:.3f}", ci, str(r["n_goal"]),
                   str(r["n_lookalike"]), f"{r['mean_goal']:.1f}", f"{r['mean_lookalike']:.1f}",
                   f"{r['wins']}/{r['ties']}/{r['losses']}")
     console.print(t)

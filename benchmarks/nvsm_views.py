@@ -50,6 +50,10 @@ obs_run                (F,) int64         run index of each observation
 xobs_*                 as obs_*           the same from a shadow store of ``SHADOW_FRAMES``
                                           observations per object (more keyframes; the agent
                                           itself used only obs_*)
+local                  (V, H, W, 3) uint8 the local map's renders over black (before any fill)
+grgb, galpha           (V, H, W, 3), (V,  the agent's online map (whole house) rendered from
+                       H, W) uint8        the same cameras at verification time, uncropped
+gcrgb, gcalpha         as grgb, galpha    the same cropped to the local map's region box
 episode                () str             the episode as JSON; meta: () str JSON of settings
 =====================  =================  ==================================================
 """
@@ -159,13 +163,43 @@ def shadow_observations(max_frames: int = SHADOW_FRAMES):
 
 
 @contextlib.contextmanager
-def recording_nvsm(runs: list, source: list, shadow=None):
+def capturing_perception(holder: dict):
+    """Put the agent's :class:`Perception` (its online map) into ``holder["perception"]`` when it
+    is built (inside the ``with`` block, this process only)."""
+    from splatsearch.agent import perception
+
+    orig = perception.Perception.__init__
+
+    def init(self, *a, **k):
+        orig(self, *a, **k)
+        holder["perception"] = self
+
+    perception.Perception.__init__ = init
+    try:
+        yield
+    finally:
+        perception.Perception.__init__ = orig
+
+
+def global_renders(gmap, viewmats, K, width: int, height: int, box) -> dict:
+    """The online map ``gmap`` rendered from ``viewmats``: uint8 arrays ``grgb``/``galpha``
+    (uncropped) and ``gcrgb``/``gcalpha`` (cropped to ``box``, the local map's region)."""
+    from splatsearch.search.novel_views import render_novel_views
+
+    rgb, alpha = render_novel_views(gmap, viewmats, K, width, height)
+    crgb, calpha = render_novel_views(gmap, viewmats, K, width, height, crop_box=box)
+    return {"grgb": _u8(rgb), "galpha": _u8(alpha), "gcrgb": _u8(crgb), "gcalpha": _u8(calpha)}
+
+
+@contextlib.contextmanager
+def recording_nvsm(runs: list, source: list, shadow=None, holder: dict | None = None):
     """Record every :meth:`Verifier.verify` that returns a result into ``runs`` (dicts with the
     entry, its centroid and label, the result, the renders' opacity and ``source[0]``).
 
     Patches ``Verifier.verify`` and the ``render_novel_views`` that ``verify_object`` calls, in
     this process only and only inside the ``with`` block (the renders' opacity is not part of
-    the NVSM's result)."""
+    the NVSM's result). With ``holder`` (see :func:`capturing_perception`) each run also gets
+    the online map's renders of its cameras (:func:`global_renders`) under ``"global"``."""
     from splatsearch.agent import verification
     from splatsearch.search import object_search
 
@@ -177,18 +211,25 @@ def recording_nvsm(runs: list, source: list, shadow=None):
         last_alpha[0] = np.array(alpha, np.float32)
         return rgb, alpha
 
-    def verify(self, db, entry_id, observations, occupancy=None):
+    def verify(self, db, entry_id, observations, occupancy=None, fill_map=None):
+        from splatsearch.search.local_map import region_box
+
         last_alpha[0] = None
-        score = orig_verify(self, db, entry_id, observations, occupancy)
+        score = orig_verify(self, db, entry_id, observations, occupancy, fill_map)
         if score is not None:
             e = db[entry_id]
+            grend = None
+            if holder is not None and holder.get("perception") is not None:
+                box = region_box(e.bbox_min, e.bbox_max, self.cfg.local_map.margin)
+                grend = global_renders(holder["perception"].mapper.map, score.viewmats, self.K, self.W, self.H, box)
             runs.append({"entry": int(entry_id), "label": e.label, "centroid": np.array(e.centroid, float),
                          "score": score, "alpha": last_alpha[0], "source": source[0],
                          "alpha_tau": float(self.nvsm_config.alpha_tau),
                          "crop_fill": float(self.nvsm_config.crop_fill),
                          "frames": [(f.rgb, f.depth, f.viewmat) for f in observations[entry_id]],
                          "xframes": [(f.rgb, f.depth, f.viewmat) for f in (shadow[entry_id] if shadow else [])],
-                         "bbox": (np.array(e.bbox_min, float), np.array(e.bbox_max, float))})
+                         "bbox": (np.array(e.bbox_min, float), np.array(e.bbox_max, float)),
+                         "global": grend})
         return score
 
     verification.Verifier.verify, object_search.render_novel_views = verify, render
@@ -219,7 +260,7 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
     def on_step(agent, _obs, _info):
         holder["agent"] = agent
 
-    with shadow_observations() as shadow, recording_nvsm(runs, source, shadow):
+    with capturing_perception(holder), shadow_observations() as shadow, recording_nvsm(runs, source, shadow, holder):
         res = run_episode(ep, cfg, env=env, on_step=on_step, max_steps=max_steps)
         agent = holder.get("agent")
         if supplement and agent is not None:
@@ -233,7 +274,8 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
     inp = OpenCVInpainter()
     arrays: dict[str, list] = {k: [] for k in ("rendered", "alpha", "holes", "background", "opencv", "viewmats",
                                                "view_run", "obs_rgb", "obs_depth", "obs_viewmat", "obs_run", "xobs_rgb",
-                                               "xobs_depth", "xobs_viewmat", "xobs_run")}
+                                               "xobs_depth", "xobs_viewmat", "xobs_run", "local", "grgb",
+                                               "galpha", "gcrgb", "gcalpha")}
     meta_runs: dict[str, list] = {k: [] for k in ("entry", "instance", "instance_dist", "is_goal", "source",
                                                   "agent_counts_max", "bbox_min", "bbox_max", "centroid")}
     for i, r in enumerate(runs):
@@ -249,6 +291,13 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
         arrays["opencv"].append(_u8(inp.inpaint(rendered, holes)))
         arrays["viewmats"].append(np.asarray(s.viewmats, np.float64))
         arrays["view_run"].append(np.full(len(rendered), i, np.int64))
+        arrays["local"].append(_u8(s.rendered))
+        g = r.get("global")
+        if g is None:  # no online map captured: an empty (transparent) one
+            z = np.zeros(np.shape(s.rendered), np.uint8)
+            g = {"grgb": z, "galpha": z[..., 0], "gcrgb": z, "gcalpha": z[..., 0]}
+        for k, v in g.items():
+            arrays[k].append(v)
         for pre, key in (("obs", "frames"), ("xobs", "xframes")):
             for rgb, depth, vm in r.get(key, []):
                 arrays[f"{pre}_rgb"].append(_u8(rgb)[None])
@@ -270,11 +319,13 @@ def dump_episode(ep, path: str, *, max_steps: int | None = None, supplement: boo
     empty = {"rendered": (0, H, W, 3), "alpha": (0, H, W), "holes": (0, H, W), "background": (0, H, W),
              "opencv": (0, H, W, 3), "viewmats": (0, 4, 4), "view_run": (0,), "obs_rgb": (0, H, W, 3),
              "obs_depth": (0, H, W), "obs_viewmat": (0, 4, 4), "obs_run": (0,), "xobs_rgb": (0, H, W, 3),
-             "xobs_depth": (0, H, W), "xobs_viewmat": (0, 4, 4), "xobs_run": (0,)}
+             "xobs_depth": (0, H, W), "xobs_viewmat": (0, 4, 4), "xobs_run": (0,), "local": (0, H, W, 3),
+             "grgb": (0, H, W, 3), "galpha": (0, H, W), "gcrgb": (0, H, W, 3), "gcalpha": (0, H, W)}
     dtypes = {"rendered": np.uint8, "alpha": np.uint8, "holes": bool, "background": bool, "opencv": np.uint8,
               "viewmats": np.float64, "view_run": np.int64, "obs_rgb": np.uint8, "obs_depth": np.uint16,
               "obs_viewmat": np.float64, "obs_run": np.int64, "xobs_rgb": np.uint8, "xobs_depth": np.uint16,
-              "xobs_viewmat": np.float64, "xobs_run": np.int64}
+              "xobs_viewmat": np.float64, "xobs_run": np.int64, "local": np.uint8, "grgb": np.uint8,
+              "galpha": np.uint8, "gcrgb": np.uint8, "gcalpha": np.uint8}
     out = {k: (np.concatenate(v) if v else np.zeros(empty[k], dtypes[k])) for k, v in arrays.items()}
     out.update({f"run_{k}": np.asarray(v) for k, v in meta_runs.items()})
     out["run_source"] = np.asarray(meta_runs["source"], dtype="<U10")

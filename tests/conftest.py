@@ -39,3 +39,20 @@ def tracking_map(tracking_walk):
     for _ in range(3):
         m.update(f.rgb, f.depth, f.viewmat)
     return m, f
+
+
+@pytest.fixture
+def random_blob_map():
+    """Factory of a small Gaussian map (the ``render_args()`` tuple): ``n`` isotropic blobs of
+    radius ``scale`` metres (3 cm) with random colours, uniform in a cube of half-side ``extent``
+    metres (0.3) around ``centre``, all of opacity ``opacity``; seeded."""
+    import numpy as np
+
+    def make(opacity: float = 0.9, n: int = 400, seed: int = 0, centre=(0.0, 0.0, 0.0), extent: float = 0.3,
+             scale: float = 0.03):
+        rng = np.random.default_rng(seed)
+        means = (rng.uniform(-extent, extent, (n, 3)) + np.asarray(centre)).astype(np.float32)
+        return (means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), scale, np.float32),
+                np.full(n, opacity, np.float32), rng.uniform(0, 1, (n, 3)).astype(np.float32))
+
+    return make

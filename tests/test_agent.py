@@ -33,6 +33,20 @@ def test_config_validation():
     with pytest.raises(ValueError):
         AgentConfig(map_every=0)
     assert VARIANTS == ("splatsearch", "no_nvsm", "no_vcicn", "opencv_inpaint", "nearest_frontier", "gaussnav")
+    with pytest.raises(ValueError, match="nvsm_fill"):
+        AgentConfig(nvsm_fill="local")
+
+
+def test_nvsm_fill_hands_the_online_map_to_the_verifier():
+    from types import SimpleNamespace
+
+    from splatsearch.agent import SplatSearchAgent
+
+    online = object()
+    for fill, expected in (("global", online), ("none", None)):
+        fake = SimpleNamespace(cfg=AgentConfig(nvsm_fill=fill),
+                               perception=SimpleNamespace(mapper=SimpleNamespace(map=online)))
+        assert SplatSearchAgent._fill_map(fake) is expected
 
 
 def test_variants_resolve_to_explicit_switches():

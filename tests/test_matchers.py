@@ -223,6 +223,9 @@ def test_dumper_writes_a_loadable_file(tmp_path):
     np.testing.assert_array_equal(da["rendered"][~da["holes"]], da["opencv"][~da["holes"]])
     assert da["run_is_goal"].any() and (~da["run_is_goal"]).any()
     assert set(da["run_source"]) <= {"agent", "supplement"}
+    # the online map's renders of the same cameras, for nvsm_separation.py --fill
+    assert da["local"].shape == da["grgb"].shape == da["gcrgb"].shape == (V, H, W, 3)
+    assert da["galpha"].shape == da["gcalpha"].shape == (V, H, W) and da["galpha"].any()
     assert da["episode"]["goal_instance_id"] == ep.goal_instance_id and json.dumps(da["meta"])
     recs = object_scores([str(a)], SIFTMatcher.for_renders(), "opencv")
     assert {r["is_goal"] for r in recs} == {True, False}
@@ -262,6 +265,32 @@ def test_separation_gives_a_learned_completion_the_holes_the_nvsm_gives_it():
     np.testing.assert_array_equal(single.got, holes)
     _views_of(d, 0, learned, "vcicn", holes_mode="interior")
     np.testing.assert_array_equal(learned.got, holes)
+
+
+def test_apply_fill_composites_the_online_map_and_finds_the_holes_again():
+    """--fill: an empty online map gives back the stored views; an opaque one covers every hole
+    and shows through where the local render was empty."""
+    from nvsm_separation import apply_fill
+    from nvsm_views import _u8, split_views
+
+    alpha = np.ones((1, 8, 10), np.float32)
+    alpha[:, :, :2] = 0.0  # background at the left border
+    alpha[:, 4:6, 5:7] = 0.0  # an enclosed gap
+    local = np.repeat(np.where(alpha[..., None] > 0, 0.8, 0.0), 3, axis=-1).astype(np.float32)
+    rendered, holes, bg = split_views(local, alpha < 0.5, alpha, 0.5, 0.5)
+    d = {"local": _u8(local), "alpha": _u8(alpha), "rendered": _u8(rendered), "holes": holes, "background": bg,
+         "opencv": _u8(rendered), "grgb": np.zeros((1, 8, 10, 3), np.uint8), "galpha": np.zeros((1, 8, 10), np.uint8)}
+    assert apply_fill(d, "none") is d
+    same = apply_fill(d, "global")
+    for k in ("rendered", "holes", "background"):
+        np.testing.assert_array_equal(same[k], d[k], err_msg=k)
+    d["grgb"], d["galpha"] = np.full((1, 8, 10, 3), 51, np.uint8), np.full((1, 8, 10), 255, np.uint8)
+    full = apply_fill(d, "global")
+    assert not full["holes"].any() and not full["background"].any()
+    np.testing.assert_array_equal(full["rendered"][alpha < 0.5], 51)
+    np.testing.assert_array_equal(full["rendered"][alpha >= 0.5], 204)
+    with pytest.raises(ValueError, match="online-map"):
+        apply_fill(d, "global-crop")
 
 
 def test_stored_views_do_not_depend_on_the_agents_completion():

@@ -603,14 +603,11 @@ def test_clear_viewpoints_drop_cameras_behind_walls_or_over_unknown_space():
         clear_viewpoints(vms, blocked[:50], spec, (0.0, 0.0))
 
 
-def test_verify_object_uses_given_cameras_and_checks_them():
+def test_verify_object_uses_given_cameras_and_checks_them(random_blob_map):
     from splatsearch.search.object_search import verify_object
 
     rng = np.random.default_rng(0)
-    n = 400
-    gmap = (rng.uniform(-0.3, 0.3, (n, 3)).astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
-            np.full((n, 3), 0.03, np.float32), np.full(n, 0.9, np.float32),
-            rng.uniform(0, 1, (n, 3)).astype(np.float32))
+    gmap = random_blob_map(opacity=0.9)
     K = sim.intrinsics(64, 48)
     vms = hemisphere_viewpoints([0.0, 0.0, 0.0], 1.0, 3, (30.0,), min_height=None, max_height=None)
     goal = rng.uniform(0, 1, (48, 64, 3)).astype(np.float32)
@@ -618,6 +615,51 @@ def test_verify_object_uses_given_cameras_and_checks_them():
     assert res.viewmats.shape == (2, 4, 4) and np.allclose(res.viewmats, vms[:2]) and res.images.shape[0] == 2
     with pytest.raises(ValueError, match="viewmats"):
         verify_object(goal, gmap, [0.0, 0.0, 0.0], K, 64, 48, viewmats=np.eye(4))
+
+
+def test_composite_under_keeps_opaque_pixels_and_shows_the_fill_in_empty_ones():
+    from splatsearch.search.novel_views import composite_under
+
+    alpha = np.array([[[1.0, 0.0, 0.5]]], np.float32)  # (V=1, H=1, W=3)
+    rgb = np.array([[[[0.2, 0.4, 0.6], [0.0, 0.0, 0.0], [0.1, 0.1, 0.1]]]], np.float32)  # over black
+    under = np.full((1, 1, 3, 3), 0.8, np.float32)
+    out, a = composite_under(rgb, alpha, under, np.ones((1, 1, 3), np.float32))
+    np.testing.assert_allclose(out[0, 0, 0], rgb[0, 0, 0])  # opaque: kept
+    np.testing.assert_allclose(out[0, 0, 1], under[0, 0, 1])  # empty: the fill
+    np.testing.assert_allclose(out[0, 0, 2], 0.1 + 0.5 * 0.8, rtol=1e-6)  # soft: the fill behind it
+    np.testing.assert_allclose(a, 1.0)
+    with pytest.raises(ValueError, match="shapes"):
+        composite_under(rgb, alpha, under[:, :, :2], np.ones((1, 1, 2), np.float32))
+
+
+def test_verify_object_fill_map_covers_holes_and_respects_the_crop(random_blob_map):
+    from splatsearch.search.object_search import NVSMConfig, verify_object
+
+    rng = np.random.default_rng(0)
+    local = random_blob_map(opacity=0.9)
+    # the coarse "online map": large blobs everywhere around, the object's box and beyond
+    fill = random_blob_map(opacity=0.9, n=3000, seed=1, extent=2.5, scale=0.12)
+    K = sim.intrinsics(64, 48)
+    vms = hemisphere_viewpoints([0.0, 0.0, 0.0], 1.5, 2, (30.0,), min_height=None, max_height=None)
+    goal = rng.uniform(0, 1, (48, 64, 3)).astype(np.float32)
+    box = (np.full(3, -0.6), np.full(3, 0.6))
+    cfg = NVSMConfig(crop=True, crop_margin=0.0, floor_z=None, inpaint=False)
+    plain = verify_object(goal, local, [0.0, 0.0, 0.0], K, 64, 48, config=cfg, bbox=box, viewmats=vms)
+    cropped = verify_object(goal, local, [0.0, 0.0, 0.0], K, 64, 48, config=cfg, bbox=box, viewmats=vms,
+                            fill_map=fill)
+    cfg_all = NVSMConfig(crop=True, crop_margin=0.0, floor_z=None, inpaint=False, fill_crop=False)
+    whole = verify_object(goal, local, [0.0, 0.0, 0.0], K, 64, 48, config=cfg_all, bbox=box, viewmats=vms,
+                          fill_map=fill)
+    def uncovered(res):  # enclosed holes and the flat-filled background the crop cut away
+        return res.holes | np.all(res.rendered == cfg.crop_fill, axis=-1)
+
+    # the fill map covers what the local render left empty; uncropped it covers more (up to the edge)
+    assert uncovered(whole).sum() < uncovered(cropped).sum() < uncovered(plain).sum()
+    filled = uncovered(plain) & ~uncovered(whole)
+    assert np.abs(whole.rendered[filled] - cfg.crop_fill).max() > 0.1
+    # where the local render covers the pixel, the fill shows through only its transparency
+    covered = ~uncovered(plain)
+    assert np.abs(whole.rendered[covered] - plain.rendered[covered]).mean() < 0.05
 
 
 # --------------------------------------------------------------------------------------------

@@ -281,17 +281,14 @@ def test_over_composite_fills_soft_pixels_and_keeps_opaque_ones(tiny_weights):
         VCICNInpainter(p, composite="blend")
 
 
-def test_nvsm_passes_opacity_so_over_composite_runs_in_the_agent(tiny_weights):
+def test_nvsm_passes_opacity_so_over_composite_runs_in_the_agent(tiny_weights, random_blob_map):
     from splatsearch import sim
     from splatsearch.search.novel_views import hemisphere_viewpoints
     from splatsearch.search.object_search import verify_object
 
     p = tiny_weights
     rng = np.random.default_rng(0)
-    n = 400
-    gmap = (rng.uniform(-0.3, 0.3, (n, 3)).astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
-            np.full((n, 3), 0.03, np.float32), np.full(n, 0.6, np.float32),
-            rng.uniform(0, 1, (n, 3)).astype(np.float32))
+    gmap = random_blob_map(opacity=0.6)
     K = sim.intrinsics(64, 48)
     vms = hemisphere_viewpoints([0.0, 0.0, 0.0], 1.0, 3, (30.0,), min_height=None, max_height=None)[:2]
     goal = rng.uniform(0, 1, (48, 64, 3)).astype(np.float32)

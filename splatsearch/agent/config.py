@@ -56,8 +56,12 @@ class AgentConfig:
 
     Mapping: every ``map_every``-th frame is mapped at ``map_scale`` of the camera resolution
     with ``map_iters`` Adam steps and densify stride ``map_stride`` px. The online map serves
-    lifting and the viewer only; the NVSM renders object-local maps at full resolution
-    (``local_map``: :class:`~splatsearch.search.local_map.LocalMapConfig`).
+    lifting and the viewer; the NVSM renders object-local maps at full resolution
+    (``local_map``: :class:`~splatsearch.search.local_map.LocalMapConfig`). ``nvsm_fill``:
+    "global" composites the online map's renders of the NVSM cameras under the local map's, so
+    that what the local map never covered, up to the view's edge, shows the coarse online map
+    instead of a hole ("none" leaves them holes). ``nvsm_fill_crop``: that online-map
+    render is cropped to the local map's region (False: the whole house).
 
     Identification: ``tau_m`` (inliers) is eq 18's match threshold on camera-image counts,
     ``nvsm_tau_m`` the same for rendered views (matched with a lower SIFT contrast threshold); an
@@ -108,6 +112,8 @@ class AgentConfig:
     view_elevations_deg: tuple = (20.0, 45.0)
     inpaint_tau: float = 0.5
     clear_views: bool = True
+    nvsm_fill: str = "none"
+    nvsm_fill_crop: bool = True
     nvsm_max_runs: int = 3
     match_observations: bool = True
     local_map: LocalMapConfig = field(default_factory=LocalMapConfig)
@@ -133,6 +139,8 @@ class AgentConfig:
         self.variant = canonical_variant(self.variant)
         if not (self.tau_m > 0 and self.nvsm_tau_m > 0):
             raise ValueError(f"need tau_m > 0 and nvsm_tau_m > 0, got {self.tau_m}, {self.nvsm_tau_m}")
+        if self.nvsm_fill not in ("none", "global"):
+            raise ValueError(f"nvsm_fill must be 'none' or 'global', got {self.nvsm_fill!r}")
         if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
             raise ValueError("need map_every >= 1, 0 < map_scale <= 1 and n_views >= 1")
         if not (0 <= self.colour_veto <= self.tau_a <= 1) or self.colour_min_views < 1 \

@@ -212,13 +212,18 @@ class SplatSearchAgent:
             return
         for eid in due:
             if db[eid].n_nvsm < self.cfg.nvsm_max_runs and verifier.can_decide(db[eid]):
-                verifier.verify(db, eid, self.perception.observations, self.explorer.occupancy)
+                verifier.verify(db, eid, self.perception.observations, self.explorer.occupancy, self._fill_map())
 
     def _verify_unverified(self) -> None:
         """After exploring (gaussnav): the NVSM of every object that has had none."""
         for e in self.db:
             if e.n_nvsm == 0 and self.verifier.can_decide(e):
-                self.verifier.verify(self.db, e.id, self.perception.observations, self.explorer.occupancy)
+                self.verifier.verify(self.db, e.id, self.perception.observations, self.explorer.occupancy,
+                                     self._fill_map())
+
+    def _fill_map(self):
+        """The map composited under the NVSM's local-map renders (``AgentConfig.nvsm_fill``)."""
+        return self.perception.mapper.map if self.cfg.nvsm_fill == "global" else None
 
 
 def _check_goal_image(goal_rgb) -> np.ndarray:

@@ -71,7 +71,7 @@ class Verifier:
         self.nvsm_config = NVSMConfig(radius=config.view_radius, n_views=config.n_views,
                                       elevations_deg=tuple(config.view_elevations_deg), alpha_tau=config.inpaint_tau,
                                       tau_m=config.nvsm_tau_m, inpaint=strategy.inpaint, crop=True, crop_margin=0.0,
-                                      floor_z=None)
+                                      floor_z=None, fill_crop=config.nvsm_fill_crop)
         self.nvsm_runs = 0
         self.last_views: NovelViews | None = None
 
@@ -108,7 +108,7 @@ class Verifier:
         return n
 
     def verify(self, db: ObjectDB, entry_id: int, observations: ObservationStore,
-               occupancy: OccupancyGrid | None = None) -> NVSMResult | None:
+               occupancy: OccupancyGrid | None = None, fill_map=None) -> NVSMResult | None:
         """Run the NVSM of entry ``entry_id`` and record its best count (on the camera-image
         scale). Needs the entry's extent and at least one stored observation; returns None (and
         records nothing) without them. ``occupancy``: picks cameras with a clear view
@@ -122,7 +122,7 @@ class Verifier:
         gmap = build_local_map(obs, self.K, self.W, self.H, lo, hi, cfg.local_map, seed=cfg.seed)
         score = verify_object(self.goal, gmap, e.centroid, self.K, self.W, self.H, matcher=self.nvsm_matcher,
                               inpainter=self.inpainter, config=self.nvsm_config, bbox=(lo, hi),
-                              viewmats=self.nvsm_viewpoints(e, occupancy))
+                              viewmats=self.nvsm_viewpoints(e, occupancy), fill_map=fill_map)
         # on the camera-image scale, so eq 18's tau_m and eq 20's scores treat both kinds alike
         scaled = float(score.e_max) * cfg.tau_m / cfg.nvsm_tau_m
         db.record_match(entry_id, scaled, score.i_star, cfg.tau_m, score.viewmats[score.i_star])

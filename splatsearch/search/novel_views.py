@@ -212,3 +212,28 @@ def render_novel_views(gmap: Any, viewmats: np.ndarray, K: np.ndarray, width: in
         rgbs.append(np.asarray(out.image))
         alphas.append(np.asarray(out.alpha)[..., 0])
     return np.clip(np.stack(rgbs), 0.0, 1.0).astype(np.float32), np.stack(alphas).astype(np.float32)
+
+
+def composite_under(rgb: np.ndarray, alpha: np.ndarray, under_rgb: np.ndarray,
+                    under_alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Composite renders over other renders of the same cameras (the "over" operator).
+
+    Both come from :func:`render_novel_views`, i.e. are premultiplied over black, so the result
+    is ``rgb + (1 - alpha) * under_rgb`` with opacity ``alpha + (1 - alpha) * under_alpha``: where
+    the front render saw nothing, the one under it shows through; where it is opaque, it is kept.
+
+    Args:
+        rgb: (V, H, W, 3) front renders in [0, 1]; alpha: (V, H, W) their opacity.
+        under_rgb, under_alpha: the same shapes, the renders to show through.
+
+    Returns:
+        (rgb (V, H, W, 3) float32 in [0, 1], alpha (V, H, W) float32).
+    """
+    rgb, alpha = np.asarray(rgb, np.float32), np.asarray(alpha, np.float32)
+    under_rgb, under_alpha = np.asarray(under_rgb, np.float32), np.asarray(under_alpha, np.float32)
+    if rgb.shape != under_rgb.shape or alpha.shape != under_alpha.shape or rgb.shape[:-1] != alpha.shape:
+        raise ValueError(f"shapes differ: rgb {rgb.shape}, alpha {alpha.shape}, under {under_rgb.shape}, "
+                         f"{under_alpha.shape}")
+    t = 1.0 - alpha
+    out = np.clip(rgb + t[..., None] * under_rgb, 0.0, 1.0).astype(np.float32)
+    return out, np.clip(alpha + t * under_alpha, 0.0, 1.0).astype(np.float32)

@@ -19,7 +19,7 @@ from .matching import (
     SIFTMatcher,
     best_view,
 )
-from .novel_views import crop_box_for, hemisphere_viewpoints, render_novel_views
+from .novel_views import composite_under, crop_box_for, hemisphere_viewpoints, render_novel_views
 
 
 class NVSMResult(NamedTuple):
@@ -60,6 +60,8 @@ class NVSMConfig:
         tau_m: match threshold on e_max.
         inpaint: complete the holes before matching (False: match the raw renders, the thesis'
             "without inpainting" ablation).
+        fill_crop: when :func:`verify_object` gets a ``fill_map``, render it with the same crop
+            box as the object's map (True) or uncropped, the whole house (False).
     """
 
     radius: float = 1.5
@@ -72,12 +74,13 @@ class NVSMConfig:
     crop_fill: float = 0.5
     tau_m: float = DEFAULT_TAU_M
     inpaint: bool = True
+    fill_crop: bool = True
 
 
 def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.ndarray, width: int, height: int, *,
                   matcher: Matcher | None = None, inpainter: Inpainter | None = None,
                   config: NVSMConfig | None = None, bbox: tuple | None = None,
-                  viewmats: np.ndarray | None = None) -> NVSMResult:
+                  viewmats: np.ndarray | None = None, fill_map: Any | None = None) -> NVSMResult:
     """Render the NVSM views of one object, complete them and match them to the goal image.
 
     Args:
@@ -92,6 +95,11 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
         bbox: (min (3,), max (3,)) object extent in metres, used when ``config.crop``.
         viewmats: optional (V, 4, 4) cameras to use instead of ``config``'s hemisphere (e.g. the
             hemisphere cameras that :func:`~splatsearch.search.novel_views.clear_viewpoints` kept).
+        fill_map: optional second Gaussian map (e.g. the agent's online map of the whole house),
+            rendered from the same cameras and composited under ``gmap``'s renders
+            (:func:`~splatsearch.search.novel_views.composite_under`) before the holes are found,
+            so that what ``gmap`` never covered (the object's surroundings up to the view's edge)
+            shows the coarser map instead of a hole. ``config.fill_crop`` picks its crop.
     """
     cfg = config or NVSMConfig()
     matcher = matcher or SIFTMatcher.for_renders()
@@ -106,6 +114,9 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
     if cfg.crop and bbox is not None:
         box = crop_box_for(bbox[0], bbox[1], cfg.crop_margin, cfg.floor_z)
     rgb, alpha = render_novel_views(gmap, vms, K, width, height, crop_box=box)
+    if fill_map is not None:
+        f_rgb, f_alpha = render_novel_views(fill_map, vms, K, width, height, crop_box=box if cfg.fill_crop else None)
+        rgb, alpha = composite_under(rgb, alpha, f_rgb, f_alpha)
     holes = holes_from_alpha(alpha, cfg.alpha_tau)
     # a learned multi-view completion (VCICN) was trained to fill every hole, background included,
     # from the views' cameras; a single-view fill gets only the enclosed gaps
