@@ -343,9 +343,10 @@ def test_social_data_builds_the_doorways_social_train_builds(tmp_path, monkeypat
 
     calls = []
 
-    def fake(scenarios, seeds, *, every=4, augment=1, progress=None, vary_geometry=False, headon=False, **_):
+    def fake(scenarios, seeds, *, every=4, augment=1, progress=None, vary_geometry=False, headon=False,
+             perceived_berth=0.0, **_):
         rows = [(SCEN.index(n), int(s), int(headon)) for n in scenarios for s in seeds]
-        calls.append((tuple(scenarios), tuple(seeds), vary_geometry, headon))
+        calls.append((tuple(scenarios), tuple(seeds), vary_geometry, headon, perceived_berth))
         n = len(rows)
         for i in range(n):
             if progress is not None:
@@ -366,6 +367,7 @@ def test_social_data_builds_the_doorways_social_train_builds(tmp_path, monkeypat
     assert args.func(args) == 0
     got = Samples.load(str(tmp_path / "data" / "samples_train.npz"))
     assert all(c[2] for c in calls)  # sampled geometry everywhere
+    assert {c[4] for c in calls} == {train.TrainConfig().perceived_berth}  # the goal features' route
 
     class Stop(Exception):
         pass
