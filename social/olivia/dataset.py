@@ -178,8 +178,9 @@ def samples_from_episode(scn, res, *, every: int = 4, augment: int = 1, rng: np.
 
 #: training doorways where the person comes through the door late, so it meets the robot head-on
 #: just past the door (:func:`headon_doorway`); outside the held-out doorway's adaptation seeds
-#: (500-519) and test seeds (1000+)
-HEADON_DOOR_SEEDS = tuple(range(220, 238))
+#: (500-519) and test seeds (1000+). Not 233: its 1.045 m door (with the jitter of its wall)
+#: leaves no route at the walker's 0.45 m clearance on the FMM grid
+HEADON_DOOR_SEEDS = tuple(range(220, 233)) + tuple(range(234, 239))
 #: how late (s) the person of a head-on training doorway starts, drawn uniformly. Both of the
 #: walker's choices must be in the data, since the robot cannot tell them apart from the person's
 #: state it perceives (dev seeds 304 vs 309): over 1.1-1.7 s it stepped 1.2-1.6 m aside and waited
