@@ -88,7 +88,8 @@ class OliviaConfig:
     route_berth: float = 0.0
     # m: the same berth around the standing people the robot has perceived (route.PerceivedRoute:
     # in line of sight within sensing range, measured slower than route.STAND_SPEED); used when
-    # route_berth is 0 (0: the walls-only shortest path, as trained)
+    # route_berth is 0 (0: the walls-only shortest path); training data use the same route
+    # (TrainConfig.perceived_berth)
     perceived_berth: float = 0.8
 
     def __post_init__(self):
