@@ -343,9 +343,10 @@ def test_social_data_builds_the_doorways_social_train_builds(tmp_path, monkeypat
 
     calls = []
 
-    def fake(scenarios, seeds, *, every=4, augment=1, progress=None, vary_geometry=False, headon=False, **_):
+    def fake(scenarios, seeds, *, every=4, augment=1, progress=None, vary_geometry=False, headon=False,
+             perceived_berth=0.0, **_):
         rows = [(SCEN.index(n), int(s), int(headon)) for n in scenarios for s in seeds]
-        calls.append((tuple(scenarios), tuple(seeds), vary_geometry, headon))
+        calls.append((tuple(scenarios), tuple(seeds), vary_geometry, headon, perceived_berth))
         n = len(rows)
         for i in range(n):
             if progress is not None:
@@ -366,6 +367,7 @@ def test_social_data_builds_the_doorways_social_train_builds(tmp_path, monkeypat
     assert args.func(args) == 0
     got = Samples.load(str(tmp_path / "data" / "samples_train.npz"))
     assert all(c[2] for c in calls)  # sampled geometry everywhere
+    assert {c[4] for c in calls} == {train.TrainConfig().perceived_berth}  # the goal features' route
 
     class Stop(Exception):
         pass
@@ -391,3 +393,32 @@ def test_social_data_builds_the_doorways_social_train_builds(tmp_path, monkeypat
     args = parser.parse_args(["data", "--out", str(tmp_path / "d3"), "--workers", "1", "--headon-door-seeds", "505"])
     with pytest.raises(SystemExit, match="held-out"):
         args.func(args)
+
+
+def test_training_goal_features_follow_the_perceived_route():
+    """The samples' goal route is the one the planner reads at run time: walls-only until the
+    second sweep, then around the standing groups the robot sees (berth 0: walls-only throughout)."""
+    from types import SimpleNamespace
+
+    from splatsearch.social.convoi.scenarios import make_scenario
+    from splatsearch.social.olivia.dataset import perceived_paths
+    from splatsearch.social.olivia.lidar import PREV_STEPS
+
+    scn = make_scenario("static_groups", 0)
+    T = 12
+    poses = np.stack([np.asarray(scn.start, np.float32)] * (T + 1))
+    poses[:, 0] += 0.05 * np.arange(T + 1)
+    people = np.repeat(np.asarray(scn.peds.pos, np.float32)[None], T + 1, 0)  # everyone still
+    res = SimpleNamespace(robot=poses, people=people)
+    walls = scn.global_path()
+    for p in perceived_paths(scn, res, 0.0):
+        np.testing.assert_array_equal(p, walls)
+    paths = perceived_paths(scn, res, 0.8)
+    assert len(paths) == T + 1
+    np.testing.assert_array_equal(paths[0], walls)  # no second sweep yet: nobody is classed
+    after = paths[PREV_STEPS]
+    assert after.shape != walls.shape or not np.allclose(after, walls)
+    stand = np.asarray(scn.peds.pos)[scn.standing_people()]
+    gap = np.linalg.norm(after[:, None] - stand[None], axis=-1).min()
+    assert gap > 0.8  # around the standing people, never through a group
+    assert np.linalg.norm(walls[:, None] - stand[None], axis=-1).min() < 0.8

@@ -67,9 +67,10 @@ def register_olivia(social_subparsers) -> None:
                    help=f"doorway scenes (sampled door widths) added to the training split, as social train does "
                         f"(default: {DOOR_TRAIN_SEEDS[0]}-{DOOR_TRAIN_SEEDS[-1]}; 'none': no doorways)")
     # a literal (dataset.HEADON_DOOR_SEEDS's module pulls in JAX) kept equal to it by a test
-    d.add_argument("--headon-door-seeds", type=_ints_or_none, default=tuple(range(220, 232)),
-                   help="head-on doorway scenes (the person meets the robot just past the door) added to the "
-                        "training split, as social train does (default: 220-231; 'none': none)")
+    d.add_argument("--headon-door-seeds", type=_ints_or_none, default=tuple(range(220, 233)) + tuple(range(234, 239)),
+                   help="head-on doorway scenes (the person meets the robot just past the door; the reference "
+                        "yields or passes) added to the training split, as social train does (default: 220-232,234-238; "
+                        "'none': none)")
     d.add_argument("--every", type=int, default=5, help="sample an expert state every N sim steps")
     d.add_argument("--augment", type=int, default=1, help="displaced copies per expert state")
     d.add_argument("--resume", action="store_true", help="keep the finished episodes in OUT/parts/, run the rest")
@@ -139,6 +140,10 @@ def register_olivia(social_subparsers) -> None:
                    help="plan selection: time constant (s) with which the drift across the line to the robot of a "
                         "person walking at it head-on decays in the safety forecast (default: the checkpoint's; "
                         "0 = constant velocity)")
+    e.add_argument("--people-react", type=float, default=None, metavar="G",
+                   help="plan selection: in the safety forecast, people ahead of the robot make way for it, moving "
+                        "sideways off its line of travel at rate G (1/s) until 0.95 m (centre to centre) from it "
+                        "(default: the checkpoint's; 0 = constant velocity)")
     add_executor_args(e, default_workers=None)
     e.set_defaults(func=cmd_eval)
 
@@ -180,7 +185,8 @@ def cmd_data(args) -> int:
         sizes = build_datasets(args.out, args.scenarios, {"train": args.train_seeds, "val": args.val_seeds},
                                every=args.every, augment=args.augment, executor=ex, resume=args.resume,
                                on_update=_job_task(prog, "expert episodes"), vary_geometry=True,
-                               door_seeds=args.door_seeds, headon_door_seeds=args.headon_door_seeds)
+                               door_seeds=args.door_seeds, headon_door_seeds=args.headon_door_seeds,
+                               perceived_berth=0.8)  # TrainConfig.perceived_berth (a test keeps them equal)
     Console().print(f"{sizes['train']} train / {sizes['val']} val samples -> {args.out}/samples_train.npz, "
                     "samples_val.npz")
     return 0
@@ -251,6 +257,11 @@ def cmd_eval(args) -> int:
             console.print("[red]--cross-tau must be >= 0 seconds[/]")
             return 2
         overrides["cross_tau"] = float(args.cross_tau)
+    if args.people_react is not None:
+        if not args.people_react >= 0:
+            console.print("[red]--people-react must be >= 0 (1/s)[/]")
+            return 2
+        overrides["people_react"] = float(args.people_react)
     planner = load_planner(args.checkpoint)
     if overrides:
         import dataclasses

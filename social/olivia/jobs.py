@@ -39,24 +39,27 @@ def _prepare(executor) -> None:
 
 # -- expert data ---------------------------------------------------------------------------------
 
-def data_job(scenario: str, seed: int, every: int, augment: int, vary_geometry: bool = False, headon: bool = False):
+def data_job(scenario: str, seed: int, every: int, augment: int, vary_geometry: bool = False, headon: bool = False,
+             perceived_berth: float = 0.0):
     """Samples of one expert episode (exactly :func:`build_dataset` on one scenario and seed;
     ``headon``: the doorway of that seed as a :func:`~splatsearch.social.olivia.dataset.headon_doorway`)."""
     from .dataset import build_dataset
 
-    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=vary_geometry, headon=headon)
+    return build_dataset([scenario], [seed], every=every, augment=augment, vary_geometry=vary_geometry, headon=headon,
+                         perceived_berth=perceived_berth)
 
 
 def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Sequence[int]], *, every: int,
                    augment: int, executor, resume: bool = False, on_update: Callable | None = None,
                    vary_geometry: bool = False, door_seeds: Sequence[int] = (),
-                   headon_door_seeds: Sequence[int] = ()) -> dict:
+                   headon_door_seeds: Sequence[int] = (), perceived_berth: float = 0.0) -> dict:
     """``OUT/samples_{split}.npz`` for every split in ``splits`` (``{"train": seeds, "val": seeds}``),
     the files ``social train --out OUT`` reuses. Returns ``{split: number of samples}``.
     ``door_seeds`` / ``headon_door_seeds``: doorway scenes (sampled widths) and head-on doorway
     scenes (:func:`~splatsearch.social.olivia.dataset.headon_doorway`) appended to the "train"
     split after its scenarios, in the order ``social train`` builds them
-    (``TrainConfig.door_seeds``, ``TrainConfig.headon_door_seeds``).
+    (``TrainConfig.door_seeds``, ``TrainConfig.headon_door_seeds``); ``perceived_berth``: the
+    goal features' route (``TrainConfig.perceived_berth``).
 
     Raises RuntimeError naming the failed jobs when any failed (the finished parts stay in
     ``OUT/parts/`` for a ``resume``); ``on_update(counts)`` follows the jobs."""
@@ -78,12 +81,13 @@ def build_datasets(out_dir: str, scenarios: Sequence[str], splits: dict[str, Seq
     def path(split, name, seed, headon):
         geo = "-geo" if vary_geometry or headon else ""  # never resume from parts of the other geometry
         kind = "-headon" if headon else ""
-        return os.path.join(parts, f"{split}-{name}{kind}-{seed}-every{every}-aug{augment}{geo}.npz")
+        pb = f"-pb{perceived_berth:g}" if perceived_berth > 0 else ""
+        return os.path.join(parts, f"{split}-{name}{kind}-{seed}-every{every}-aug{augment}{geo}{pb}.npz")
 
     keys = {f"{split}/{name}{'-headon' if h else ''}/{seed}": (split, name, seed, h) for split, name, seed, h in order}
     if len(keys) != len(order):
         raise ValueError("a (split, scenario, seed) appears twice: door seeds must differ from the doorway's train seeds")
-    jobs = [Job(key, data_job, (name, seed, every, augment, vary_geometry, h))
+    jobs = [Job(key, data_job, (name, seed, every, augment, vary_geometry, h, perceived_berth))
             for key, (split, name, seed, h) in keys.items()
             if not (resume and os.path.exists(path(split, name, seed, h)))]
     _prepare(executor)

@@ -76,6 +76,10 @@ class OliviaConfig:
     # walking diagonally past the door, that forecast sent the robot into their path (stop 39)
     oncoming_yield: bool = True
     cross_tau: float = 0.0
+    # 1/s: the safety cost's forecast lets people ahead make way for the robot at this rate
+    # (forecast.reactive_forecast; 0: they walk on at constant velocity). Off by default: on dev
+    # seeds it helped dynamic groups of one training and hurt others (stop 41)
+    people_react: float = 0.0
     oncoming_time: float = 4.0  # s: a person counts as head-on when it can meet the robot within this time
     route_fallback: bool = True  # when every plan runs into the map, the NC follows the static route
     # m: the route (goal features, fallback) keeps this far from people standing still and never
@@ -84,8 +88,15 @@ class OliviaConfig:
     route_berth: float = 0.0
     # m: the same berth around the standing people the robot has perceived (route.PerceivedRoute:
     # in line of sight within sensing range, measured slower than route.STAND_SPEED); used when
-    # route_berth is 0 (0: the walls-only shortest path, as trained)
+    # route_berth is 0 (0: the walls-only shortest path); training data use the same route
+    # (TrainConfig.perceived_berth)
     perceived_berth: float = 0.8
+
+    def __post_init__(self):
+        for name in ("cross_tau", "people_react"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v >= 0):
+                raise ValueError(f"OliviaConfig.{name} must be a number >= 0, got {v!r}")
 
 
 N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one

@@ -98,7 +98,7 @@ class PerceivedRoute:
             if not len(pts):
                 self.path = self.walls
             else:
-                # from the scene's start, as the trained global path: rooted at the robot, a route
+                # from the scene's start, as the walls-only path: rooted at the robot, a route
                 # carried a sidestep along as the new lateral reference (dev seeds: the robot no
                 # longer drifted back to the lane after passing people, hallway and dynamic groups).
                 # People closing every way through: keep the route in use (the robot waits or

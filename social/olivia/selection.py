@@ -21,6 +21,9 @@ way:
   the velocity along the person-robot line and lets the part across it decay with time
   constant ``cross_tau``. Everybody else (standing, crossing, walking away) stays at constant
   velocity.
+
+The forecasts (and the opt-in one where people make way for the robot) are in
+:mod:`~splatsearch.social.olivia.forecast`.
 """
 
 from __future__ import annotations
@@ -29,16 +32,13 @@ import numpy as np
 
 from ..convoi.scenarios import PERSON_RADIUS, ROBOT_RADIUS
 from .features import FUTURE_STRIDE
+from .forecast import forecast_people, plan_times  # noqa: F401 - forecast_people re-exported
 
 WALL_MARGIN = 0.05  # m: the clearance a plan keeps from the map (the NC cuts corners by about this)
 ONCOMING_CONE = 0.44  # rad (25°): the walker's `oncoming_cone`
 ONCOMING_SPEED = 0.3  # m/s: slower people are not walking at the robot
 ONCOMING_RADIUS = 4.0  # m: farther people have time to change their way (the LLU buffer's tag)
 ROBOT_SPEED = 0.6  # m/s: the robot's top speed (the follower's and the walker's limit)
-
-
-def _times(H: int) -> np.ndarray:
-    return FUTURE_STRIDE * 0.1 * np.arange(1, H + 1)
 
 
 def consistency_cost(trajs_world: np.ndarray, prev_world: np.ndarray | None, elapsed: float,
@@ -96,39 +96,19 @@ def oncoming_count(pose: np.ndarray, people: np.ndarray, people_vel: np.ndarray,
     return int(np.sum(oncoming_mask(pose, people, people_vel, cone, radius, min_speed)))
 
 
-def forecast_people(people: np.ndarray, people_vel: np.ndarray, H: int, pose: np.ndarray | None = None,
-                    oncoming: np.ndarray | None = None, cross_tau: float = 0.0) -> np.ndarray:
-    """(H, P, 2) the people's predicted centres at the plan's instants (every FUTURE_STRIDE
-    steps). Constant velocity, except for the ``oncoming`` (P,) bool people when ``cross_tau``
-    > 0: their velocity along the line to the robot at ``pose`` stays, the part across it decays
-    with time constant ``cross_tau`` s (it moves them at most ``speed_across x cross_tau`` m
-    sideways)."""
-    people = np.asarray(people, np.float64).reshape(-1, 2)
-    vel = np.asarray(people_vel, np.float64).reshape(-1, 2)
-    t = _times(H)[:, None, None]
-    pred = people[None] + t * vel[None]
-    if cross_tau > 0 and oncoming is not None and np.any(oncoming) and pose is not None:
-        rel = np.asarray(pose[:2], np.float64) - people
-        u = rel / np.maximum(np.linalg.norm(rel, axis=-1, keepdims=True), 1e-6)  # toward the robot
-        along = np.sum(vel * u, -1, keepdims=True) * u
-        across = vel - along
-        decayed = people[None] + t * along[None] + cross_tau * (1 - np.exp(-t / cross_tau)) * across[None]
-        pred = np.where(np.asarray(oncoming, bool)[None, :, None], decayed, pred)
-    return pred
-
-
 def safety_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarray, margin: float,
                 pose: np.ndarray | None = None, oncoming: np.ndarray | None = None,
-                cross_tau: float = 0.0) -> np.ndarray:
+                cross_tau: float = 0.0, people_react: float = 0.0) -> np.ndarray:
     """(K,) intrusion of each plan ``trajs_world`` (K, horizon, 2) into the space of the people
     seen, ``people`` (P, 2) world moving at ``people_vel`` (P, 2) m/s, predicted by
-    :func:`forecast_people` (constant velocity unless ``cross_tau`` > 0 and ``oncoming``): the
+    :func:`~splatsearch.social.olivia.forecast.forecast_people` (constant velocity unless
+    ``cross_tau`` > 0 and ``oncoming``, or ``people_react`` > 0): the
     sum over the plan's poses of ``max(0, margin - edge gap)²`` (m²), nearer poses weighing
     more (1 down to 0.5)."""
     K, H = trajs_world.shape[:2]
     if len(people) == 0:
         return np.zeros(K)
-    pred = forecast_people(people, people_vel, H, pose, oncoming, cross_tau)  # (H, P, 2)
+    pred = forecast_people(people, people_vel, H, pose, oncoming, cross_tau, people_react)  # (H, P, 2)
     gap = np.linalg.norm(trajs_world[:, :, None] - pred[None], axis=-1) - (ROBOT_RADIUS + PERSON_RADIUS)
     w = np.linspace(1.0, 0.5, H)[None, :]
     return np.sum(w * np.max(np.clip(margin - gap, 0.0, None), -1) ** 2, -1)
@@ -143,7 +123,7 @@ def side_cost(trajs_world: np.ndarray, people: np.ndarray, people_vel: np.ndarra
     K, H = trajs_world.shape[:2]
     if len(people) == 0:
         return np.zeros(K)
-    pred = people[None] + _times(H)[:, None, None] * people_vel[None]  # (H, P, 2)
+    pred = people[None] + plan_times(H)[:, None, None] * people_vel[None]  # (H, P, 2)
     # the plan's direction of travel (first to last pose), not its pose-to-pose heading, which
     # turns away from the person while stepping aside
     chord = trajs_world[:, -1] - trajs_world[:, 0]
@@ -171,7 +151,7 @@ def selection_scores(logits: np.ndarray, cand: np.ndarray, pose: np.ndarray, pre
     s ago; people (P, 2), people_vel (P, 2) m/s: the people in line of sight; clearance
     (K, horizon) m or None: the map's clearance at the plans' poses; cfg: an
     :class:`~splatsearch.social.olivia.planner.OliviaConfig` (``consistency``, ``safety``,
-    ``safety_margin``, ``pass_right``, ``oncoming_yield``, ``cross_tau``, ``oncoming_time``).
+    ``safety_margin``, ``pass_right``, ``oncoming_yield``, ``cross_tau``, ``people_react``, ``oncoming_time``).
 
     Returns ``{"score": (K,), "consistency", "safety", "side", "map": (K,) penalties already
     weighted, "oncoming": number of head-on people}``; the plan picked is ``argmax(score)``."""
@@ -189,7 +169,7 @@ def selection_scores(logits: np.ndarray, cand: np.ndarray, pose: np.ndarray, pre
         parts["consistency"] = cfg.consistency * consistency_cost(cand, prev_world, elapsed, free_right=free)
     if cfg.safety > 0:
         parts["safety"] = cfg.safety * safety_cost(cand, people, people_vel, cfg.safety_margin, pose, on,
-                                                   cfg.cross_tau)
+                                                   cfg.cross_tau, cfg.people_react)
         if cfg.pass_right > 0:
             parts["side"] = cfg.pass_right * side_cost(cand, people, people_vel)
         if clearance is not None:

@@ -167,7 +167,7 @@ def config_to_meta(cfg: OliviaConfig) -> dict:
             "vote_memory": cfg.vote_memory, "score_weight": cfg.score_weight, "consistency": cfg.consistency,
             "safety": cfg.safety, "safety_margin": cfg.safety_margin, "text_gate": cfg.text_gate, "view_gate": cfg.view_gate, "pass_right": cfg.pass_right,
             "arrive_radius": cfg.arrive_radius, "oncoming_yield": cfg.oncoming_yield, "cross_tau": cfg.cross_tau,
-            "oncoming_time": cfg.oncoming_time, "route_fallback": cfg.route_fallback, "route_berth": cfg.route_berth,
+            "people_react": cfg.people_react, "oncoming_time": cfg.oncoming_time, "route_fallback": cfg.route_fallback, "route_berth": cfg.route_berth,
             "perceived_berth": cfg.perceived_berth}
 
 
@@ -183,7 +183,7 @@ def config_from_meta(meta: dict) -> OliviaConfig:
                         retrieve_tau=float(c.get("retrieve_tau", 0.05)), vote_memory=float(c.get("vote_memory", 0.0)),
                         score_weight=float(c.get("score_weight", 1.0 if t["score"] else 0.0)),
                         **{k: float(c[k]) for k in ("consistency", "safety", "safety_margin", "text_gate", "view_gate", "pass_right", "arrive_radius",
-                                                    "cross_tau", "oncoming_time", "route_berth",
+                                                    "cross_tau", "people_react", "oncoming_time", "route_berth",
                                                     "perceived_berth")
                            if k in c},
                         **{k: bool(c[k]) for k in ("oncoming_yield", "route_fallback") if k in c})
@@ -322,6 +322,9 @@ class TrainConfig:
     door_seeds: tuple = DOOR_TRAIN_SEEDS
     headon_door_seeds: tuple = HEADON_DOOR_SEEDS
     vary_geometry: bool = True
+    # m: the goal features of the data follow the route around the standing people perceived so
+    # far, the route the planner reads (OliviaConfig.perceived_berth); 0: the walls-only path
+    perceived_berth: float = 0.8
 
 
 def _text_arrays(s: Samples):
@@ -437,7 +440,8 @@ def train_olivia(out_dir: str, tc: TrainConfig = TrainConfig(), cfg: OliviaConfi
             done[0] += 1
             advance(tid, completed=done[0], description=f"expert {label}")
 
-        kw = dict(every=tc.every, augment=tc.augment, progress=prog, vary_geometry=tc.vary_geometry)
+        kw = dict(every=tc.every, augment=tc.augment, progress=prog, vary_geometry=tc.vary_geometry,
+                  perceived_berth=tc.perceived_berth)
         train = build_dataset(tc.scenarios, tc.train_seeds, **kw)
         if tc.door_seeds:
             # doors of sampled widths (1.02-1.6 m, the held-out doorway's 1.1 m inside), never its seeds
