@@ -19,6 +19,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from splatsearch.cli_types import positive_int
+
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     import os
@@ -549,17 +551,6 @@ def _one_line(e: BaseException) -> str:
         return f"{e.strerror}: {e.filename}"
     text = str(e).strip() or type(e).__name__
     return text.splitlines()[0] if "\n" in text else text
-
-
-def positive_int(text: str) -> int:
-    """argparse type of a count that must be >= 1."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
-    return n
 
 
 def port_number(text: str) -> int:

@@ -8,8 +8,9 @@ in the help are :data:`DEFAULTS`, which a test keeps equal to TrackerConfig's.""
 from __future__ import annotations
 
 import argparse
-
 from types import SimpleNamespace
+
+from splatsearch.cli_types import positive_int
 
 __all__ = ["DEFAULTS", "SOLVERS", "add_track_args", "flags_needing_track", "tracker_config"]
 
@@ -18,16 +19,6 @@ DEFAULTS = dict(iters=40, solver="gn", gn_iters=10, gn_loss_tol=3e-3, coarse_ite
                 prior_weight=1e-3, prior_lateral_sigma=0.01, f2f_prior=True, f2f_rot_sigma=1e-3, downscale=1)
 #: slam.SOLVERS
 SOLVERS = ("adam", "gn")
-
-
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
-    return n
 
 
 def _lateral(text: str) -> float | None:
@@ -70,7 +61,7 @@ def add_track_args(m: argparse.ArgumentParser) -> None:
                    help="with --track: the pose solver: 'gn' (Levenberg-Marquardt on reweighted L1 residuals, "
                         f"at most --track-gn-iters steps; the default is {d.solver!r}) or 'adam' (SplaTAM's "
                         "first-order steps, --track-iters; 4-6x slower a frame)")
-    m.add_argument("--track-gn-iters", type=_positive_int, default=None,
+    m.add_argument("--track-gn-iters", type=positive_int, default=None,
                    help=f"with --track-solver gn: most Levenberg-Marquardt steps per frame (default {d.gn_iters})")
     m.add_argument("--track-gn-loss-tol", type=_nonneg_float, default=None,
                    help="with --track-solver gn: stop after an accepted step that lowers the loss by less than this "

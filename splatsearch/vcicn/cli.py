@@ -8,12 +8,7 @@ import json
 import math
 import sys
 
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
+from splatsearch.cli_types import positive_int
 
 
 def _positive_float(text: str) -> float:
@@ -44,11 +39,11 @@ def add_parser(sub) -> None:
     d.add_argument("--furniture", choices=["default", "identical", "both"], default="both",
                    help="house furniture mode: default, identical (one model per class) or both, i.e. every house "
                         "twice (default: both)")
-    d.add_argument("--max-objects", type=_positive_int, default=4,
+    d.add_argument("--max-objects", type=positive_int, default=4,
                    help="goal-class objects per house at most (default: 4)")
     d.add_argument("--goal-views", type=int, default=2,
                    help="goal-image-style (val-hard) views per object besides the N_R hemisphere views (default: 2)")
-    d.add_argument("--workers", type=_positive_int, default=1,
+    d.add_argument("--workers", type=positive_int, default=1,
                    help="worker processes (default: 1); a finished shard is skipped on a rerun")
     d.set_defaults(func=_cmd_data)
 
@@ -59,16 +54,16 @@ def add_parser(sub) -> None:
     t.add_argument("--max-minutes", type=_positive_float, default=60.0,
                    help="wall-time budget in minutes; training stops (keeping the best checkpoint) when it is "
                         "spent (default: 60)")
-    t.add_argument("--steps", type=_positive_int, default=6000,
+    t.add_argument("--steps", type=positive_int, default=6000,
                    help="optimiser steps; the cosine learning-rate decay ends here (default: 6000)")
-    t.add_argument("--batch", type=_positive_int, default=2, help="objects per step (default: 2)")
+    t.add_argument("--batch", type=positive_int, default=2, help="objects per step (default: 2)")
     t.add_argument("--lr", type=_positive_float, default=2e-3, help="peak learning rate (default: 2e-3)")
     t.add_argument("--size", default="64x48", help="training resolution WxH in pixels, both divisible by 8 "
                                                    "(default: 64x48)")
-    t.add_argument("--width", type=_positive_int, default=16, help="channels of the first U-Net level, a multiple of 8 (default: 16)")
-    t.add_argument("--eval-every", type=_positive_int, default=400,
+    t.add_argument("--width", type=positive_int, default=16, help="channels of the first U-Net level, a multiple of 8 (default: 16)")
+    t.add_argument("--eval-every", type=positive_int, default=400,
                    help="steps between validation passes and checkpoints (default: 400)")
-    t.add_argument("--patience", type=_positive_int, default=6,
+    t.add_argument("--patience", type=positive_int, default=6,
                    help="validation passes without improvement before stopping early (default: 6)")
     t.add_argument("--val-houses", default=None,
                    help="held-apart validation house seeds ('A-B' or 'A,B'); default: seeds ending in 9")
