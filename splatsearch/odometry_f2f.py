@@ -17,7 +17,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["f2f_step", "gate_step", "horizontal_step", "planar_yaw_only", "prior_step", "rotation_angle"]
+__all__ = ["camera_displacement", "f2f_step", "gate_step", "horizontal_step", "planar_yaw_only", "prior_step", "rotation_angle"]
 
 
 def _gray(rgb: np.ndarray) -> np.ndarray:
@@ -67,6 +67,13 @@ def rotation_angle(R: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(np.asarray(R, np.float64)) - 1) / 2, -1.0, 1.0)))
 
 
+def camera_displacement(step: np.ndarray) -> np.ndarray:
+    """(3,) camera centre ``-R^T t`` of a (4, 4) world-to-camera matrix: for a step, the camera's
+    displacement in the previous camera's frame (m)."""
+    step = np.asarray(step, np.float64)
+    return -step[:3, :3].T @ step[:3, 3]
+
+
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(axis, np.float64).reshape(3, 1) * angle)[0]
 
@@ -86,7 +93,7 @@ def horizontal_step(step: np.ndarray, up_cam: np.ndarray) -> np.ndarray:
     vertical in the previous camera's frame, (3,)), for a camera that moves in a horizontal plane."""
     step = np.asarray(step, np.float64)
     up = np.asarray(up_cam, np.float64) / np.linalg.norm(up_cam)
-    disp = -step[:3, :3].T @ step[:3, 3]
+    disp = camera_displacement(step)
     disp = disp - (disp @ up) * up
     out = step.copy()
     out[:3, 3] = -step[:3, :3] @ disp
@@ -95,7 +102,7 @@ def horizontal_step(step: np.ndarray, up_cam: np.ndarray) -> np.ndarray:
 
 def _with_rotation(step: np.ndarray, R: np.ndarray) -> np.ndarray:
     """``step`` with rotation ``R`` and the same camera displacement (-R^T t in the previous frame)."""
-    disp = -step[:3, :3].T @ step[:3, 3]
+    disp = camera_displacement(step)
     out = np.eye(4)
     out[:3, :3] = R
     out[:3, 3] = -R @ disp
@@ -111,8 +118,7 @@ def gate_step(f2f: np.ndarray | None, odo: np.ndarray, sigma_rot: float, sigma_t
         return False
     f2f, odo = np.asarray(f2f, np.float64), np.asarray(odo, np.float64)
     d_rot = rotation_angle(f2f[:3, :3] @ odo[:3, :3].T)
-    disp = lambda s: -s[:3, :3].T @ s[:3, 3]  # noqa: E731
-    d_trans = float(np.linalg.norm(disp(f2f) - disp(odo)))
+    d_trans = float(np.linalg.norm(camera_displacement(f2f) - camera_displacement(odo)))
     return d_rot <= n_sigma * sigma_rot and d_trans <= n_sigma * sigma_trans
 
 

@@ -100,10 +100,8 @@ def project_planar(viewmat: np.ndarray, ref: np.ndarray) -> np.ndarray:
 def pose_distance(vm_a, vm_b) -> tuple[float, float]:
     """(rotation angle in rad, camera-centre distance in m) between two world-to-camera poses."""
     a, b = np.asarray(vm_a, np.float64), np.asarray(vm_b, np.float64)
-    dR = a[:3, :3] @ b[:3, :3].T
-    ang = float(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
-    ca, cb = -a[:3, :3].T @ a[:3, 3], -b[:3, :3].T @ b[:3, 3]
-    return ang, float(np.linalg.norm(ca - cb))
+    ang = odometry_f2f.rotation_angle(a[:3, :3] @ b[:3, :3].T)
+    return ang, float(np.linalg.norm(odometry_f2f.camera_displacement(a) - odometry_f2f.camera_displacement(b)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -704,16 +702,16 @@ class SLAM:
         first = not any(r.mapped for r in self.results)
         pred = self.predict(odometry)
         # the odometry's motion since the last frame: how far the prediction can be trusted
-        prior_q = None
+        prior_q = rel_odo = None
         if odometry is not None and self._last_odom is not None and np.all(np.isfinite(odometry)) \
                 and self.tcfg.prior_weight > 0:
-            prior_q = self.tcfg.prior_precision(np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom))
+            rel_odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom)
+            prior_q = self.tcfg.prior_precision(rel_odo)
         f2f_status = None
         if prior_q is not None and prior is None and self.track_enabled and not first and self.tcfg.f2f_prior:
             self._f2f_link_to(rgb, depth, odometry)
             f2f_status = self._f2f_link
             if self._f2f_acc is not None and self._f2f_link == "accepted":
-                rel_odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom)
                 last = [p for p in self.poses if np.all(np.isfinite(p))][-1].astype(np.float64)
                 prior_q = prior_q.copy()
                 prior_q[:3, :3] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_rot_sigma ** 2)
