@@ -26,7 +26,7 @@ import time
 from splatsearch import datasets
 from splatsearch.map_job import MapJob, map_sequence
 from splatsearch.mapper import MapperConfig
-from splatsearch.slam import SOLVERS, TrackerConfig, parse_lateral_sigma
+from splatsearch.slam import JACOBIANS, SOLVERS, TrackerConfig, parse_lateral_sigma
 
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
@@ -98,6 +98,9 @@ def main(argv=None) -> int:
     p.add_argument("--track-solver", default=d.solver, choices=SOLVERS,
                    help=f"tracking solver: adam (--track-iters steps) or gn (Levenberg-Marquardt, "
                         f"--track-gn-iters steps; default {d.solver})")
+    p.add_argument("--track-jacobian", default=d.jacobian, choices=JACOBIANS,
+                   help=f"with --track-solver gn: the pose Jacobian, analytic (one render) or finite-difference "
+                        f"(one render per pose parameter; default {d.jacobian})")
     p.add_argument("--track-gn-iters", type=int, default=d.gn_iters,
                    help=f"most Levenberg-Marquardt steps per frame with --track-solver gn (default {d.gn_iters})")
     p.add_argument("--track-gn-loss-tol", type=float, default=d.gn_loss_tol,
@@ -161,7 +164,7 @@ def main(argv=None) -> int:
                          prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol,
                          map_min_info=a.map_min_info, map_skip_max=a.map_skip_max, f2f_prior=a.f2f_prior,
                          f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff,
-                         f2f_trans_sigma=a.f2f_trans_sigma)
+                         f2f_trans_sigma=a.f2f_trans_sigma, jacobian=a.track_jacobian)
     try:
         tcfg.validate()
     except ValueError as e:

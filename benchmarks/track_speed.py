@@ -1,15 +1,22 @@
-"""Tracking cost and accuracy with the full vs the pose-only rasterizer backward, alternating in one process.
+"""Tracking cost and accuracy of two tracker variants, alternating frame by frame in one process.
 
-    python benchmarks/track_speed.py [--data sim,tum] [--map-frames 12] [--track-frames 8] [--rounds 2]
+    python benchmarks/track_speed.py [--compare backward|jacobian] [--data sim,tum] [--map-frames 12]
+                                     [--track-frames 8] [--rounds 2]
 
 For each data set a map is fitted with ground-truth poses to the first ``--map-frames`` frames
 (simulator: dev house ``--seed`` at 320x240 with the SIM mapper settings of ``slam_eval.py``;
 TUM: the shared fr1/xyz frames at half size, 320x240, with the REAL settings), then the next
 ``--track-frames`` frames are tracked against that frozen map with the default
-:class:`~splatsearch.slam.TrackerConfig` (40 steps + odometry prior), once with each backward:
+:class:`~splatsearch.slam.TrackerConfig`, once with each variant. ``--compare backward`` (default;
+the 40-step Adam solver + odometry prior, whose cost is mostly the backward):
 
 - ``all``: ``rasterize(..., differentiable="all")``, every Gaussian's gradient formed (before);
 - ``viewmat``: ``rasterize(..., differentiable="viewmat")``, the pose-only backward (now the default).
+
+``--compare jacobian``: the default Levenberg-Marquardt solver (6 DoF) with
+``TrackerConfig.jacobian`` ``finite-difference`` (6 extra renders a frame) and ``analytic``; also
+prints the forward renders a frame (1 at the start + 6 differences (finite-difference only) + 1 per
+step, rejected ones included; a step's backward runs only when the next step uses its gradient).
 
 The two alternate frame by frame for ``--rounds`` rounds (the first call of each compiles and is
 not timed). Initial pose: simulator, the previous ground-truth pose moved by the noisy odometry's
@@ -30,7 +37,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 TUM = os.path.join(HERE, "..", "..", "shared", "data", "tum_fr1_xyz_first10")
-MODES = ("all", "viewmat")
+COMPARE = {"backward": ("all", "viewmat"), "jacobian": ("finite-difference", "analytic")}
 
 
 def _build(name: str, seed: int, n_map: int, n_track: int):
@@ -69,6 +76,9 @@ def _build(name: str, seed: int, n_map: int, n_track: int):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--compare", default="backward", choices=sorted(COMPARE),
+                    help="what is compared: the rasterizer backward (Adam tracker) or the Levenberg-Marquardt "
+                         "Jacobian (default backward)")
     ap.add_argument("--data", default="sim,tum", help="comma-separated subset of sim,tum (default both)")
     ap.add_argument("--seed", type=int, default=0, help="dev house of the simulator walk (default 0; never >= 1000)")
     ap.add_argument("--map-frames", type=int, default=12, help="frames mapped with ground-truth poses (default 12)")
@@ -86,13 +96,17 @@ def main(argv=None) -> int:
         ap.error("the TUM set has 10 frames: --map-frames + --track-frames must be <= 10")
     from splatsearch import slam
 
+    MODES = COMPARE[a.compare]
     caches = {mode: {} for mode in MODES}
 
     def run(mode, gmap, fr, K, W, H):
-        slam._TRACK_DIFF, slam._TRACK_FNS = mode, caches[mode]  # one compiled tracker per backward
         rgb, depth, gt, init, prior = fr
-        # the 40-step Adam tracker, whose cost is mostly the backward being compared
-        r = slam.track(gmap, rgb, depth, init, K, W, H, solver="adam", prior_sigma=prior)
+        if a.compare == "jacobian":
+            r = slam.track(gmap, rgb, depth, init, K, W, H, solver="gn", jacobian=mode, prior_sigma=prior)
+        else:
+            slam._TRACK_DIFF, slam._TRACK_FNS = mode, caches[mode]  # one compiled tracker per backward
+            # the 40-step Adam tracker, whose cost is mostly the backward being compared
+            r = slam.track(gmap, rgb, depth, init, K, W, H, solver="adam", prior_sigma=prior)
         ang, dist = slam.pose_distance(r.viewmat, gt)
         return r, np.degrees(ang), 100 * dist
 
@@ -111,13 +125,15 @@ def main(argv=None) -> int:
         for mode in MODES:
             x = np.array([v[:5] for v in rec[mode]], np.float64)
             st = sorted({v[5] for v in rec[mode]})
+            renders = (f"  forward renders/frame {1 + x[:, 2].mean() + (6 if mode == 'finite-difference' else 0):.1f}"
+                       if a.compare == "jacobian" else "")
             print(f"  {mode:8s} CPU-s/frame {np.median(x[:, 0]):.3f} (mean {x[:, 0].mean():.3f})  "
                   f"wall s/frame {np.median(x[:, 1]):.3f}  steps {x[:, 2].mean():.1f}  "
                   f"CPU-ms/step {1e3 * np.median(x[:, 0] / np.maximum(x[:, 2], 1)):.1f}  "
-                  f"error {x[:, 3].mean():.3f} deg {x[:, 4].mean():.3f} cm  status {st}")
-        ca = np.array([v[0] for v in rec["all"]])
-        cv = np.array([v[0] for v in rec["viewmat"]])
-        print(f"  viewmat/all CPU-s per frame: {np.median(cv / ca):.3f} (median of paired frames)")
+                  f"error {x[:, 3].mean():.3f} deg {x[:, 4].mean():.3f} cm  status {st}{renders}")
+        ca = np.array([v[0] for v in rec[MODES[0]]])
+        cv = np.array([v[0] for v in rec[MODES[1]]])
+        print(f"  {MODES[1]}/{MODES[0]} CPU-s per frame: {np.median(cv / ca):.3f} (median of paired frames)")
     return 0
 
 

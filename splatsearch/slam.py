@@ -116,6 +116,9 @@ def diagonal_precision(weight: float, sigma_rot: float, sigma_trans: float) -> n
 
 #: tracking solvers: "adam" (first order, SplaTAM's) and "gn" (Levenberg-Marquardt on IRLS weights)
 SOLVERS = ("adam", "gn")
+#: Levenberg-Marquardt's Jacobian: from the one render at the pose (image gradients, pinhole, se(3))
+#: or from k forward-difference renders
+JACOBIANS = ("analytic", "finite-difference")
 
 
 @dataclass
@@ -154,7 +157,11 @@ class TrackerConfig:
     the residuals' Jacobian w.r.t. the k pose parameters from k forward-difference renders (step
     ``gn_fd_step`` rad / m), each pixel and channel weighted by 1 / max(|r|, eps) with eps the
     larger of ``gn_eps_depth`` (m) / ``gn_eps_color`` and ``gn_eps_rel`` x the channel's mean |r| (a
-    floor that keeps nearly exact pixels from dominating the metric). gn_refresh False (default):
+    floor that keeps nearly exact pixels from dominating the metric). jacobian: "finite-difference"
+    (the k renders above) or "analytic" (from the one render at the pose the metric is formed at: the
+    render's colour and depth gradients chained with the pinhole projection of its back-projected
+    depth and the se(3) generators, plus the depth's own z motion;
+    :func:`splatsearch.tracking_gn.analytic_jacobian`), which saves k renders a stage. gn_refresh False (default):
     the metric is formed once at the stage's start and each step then costs one forward + pose-only
     backward for the exact gradient; True: Jacobian and gradient are re-formed from k + 1 renders
     after every accepted step. A step that does not lower the loss is rejected and the damping
@@ -225,6 +232,7 @@ class TrackerConfig:
     gn_eps_rel: float = 2.0
     gn_refresh: bool = False
     gn_loss_tol: float = 3e-3
+    jacobian: str = "finite-difference"
     prior_info_max: float = 1.0
     prior_info_window: int = 20
     map_min_info: float = 0.0
@@ -241,6 +249,8 @@ class TrackerConfig:
             raise ValueError(f"f2f_trans_sigma must be None or a finite value > 0, got {self.f2f_trans_sigma}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
+        if self.jacobian not in JACOBIANS:
+            raise ValueError(f"jacobian must be one of {JACOBIANS}, got {self.jacobian!r}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if self.gn_iters < 1 or not (self.gn_fd_step > 0 and self.gn_eps_depth > 0 and self.gn_eps_color > 0
@@ -347,7 +357,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
            cfg.tol, cfg.patience, cfg.solver, cfg.gn_fd_step, cfg.gn_eps_depth, cfg.gn_eps_color, cfg.gn_step_tol,
-           cfg.gn_eps_rel, cfg.gn_refresh, cfg.prior_info_max, cfg.gn_loss_tol)
+           cfg.gn_eps_rel, cfg.gn_refresh, cfg.prior_info_max, cfg.gn_loss_tol, cfg.jacobian)
     if key in _TRACK_FNS:
         return _TRACK_FNS[key]
     planar = cfg.planar
@@ -390,14 +400,14 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             r = jnp.concatenate([out.depth - depth[..., None], out.image - rgb], -1)
             return (r, mask_at(None, margs, depth, vm_ref, out)) if with_mask else r
 
-        return mask_at, loss, jax.value_and_grad(loss), residual
+        return mask_at, loss, jax.value_and_grad(loss), residual, Kj
 
     fns = [make_level(Kb, W, H) for Kb, W, H, _, _ in levels]
     gn_stage = make_gn_stage(cfg)
 
     def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref):
         """Adam steps from p on one level; returns (best p, its loss, steps run)."""
-        mask_at, loss, vg, _ = fn
+        mask_at, loss, vg, *_ = fn
         mf = mask_at(basis @ p, margs, depth, vm_ref)
         decay = jnp.log(jnp.float32(cfg.lr_final)) / max(n_steps - 1, 1)
 
@@ -424,7 +434,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         last = loss(p_last, margs, rgb, depth, vm_ref, basis, mf, pw)  # the last update is not scored yet
         better = last < best_loss
         return (jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last,
-                jnp.float32(jnp.nan))
+                jnp.float32(jnp.nan), jnp.float32(jnp.nan))
 
     @jax.jit
     @full_precision
@@ -433,18 +443,76 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         p0 = basis.T @ xi_start  # the basis is orthonormal
         p, steps, frac0 = p0, jnp.int32(0), None
         for (rgb, depth), fn, (_, _, _, n_steps, lr_scale) in zip(images, fns, levels):
-            p, best_loss, k, mf, last, info = (gn_stage if cfg.solver == "gn" else stage)(
+            p, best_loss, k, mf, last, info, start = (gn_stage if cfg.solver == "gn" else stage)(
                 p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref)
             frac0 = mf.mean() if frac0 is None else frac0  # the first stage's pixels are chosen at p0
             steps = steps + k
         rgb, depth = images[-1]
-        loss0 = fns[-1][1](p0, margs, rgb, depth, vm_ref, basis, mf, pw)  # on the last stage's pixels
+        if len(levels) == 1 and cfg.solver == "gn" and cfg.prior_info_max <= 1:
+            loss0 = start  # the stage's own loss at p0 on its pixels: no extra render
+        else:
+            loss0 = fns[-1][1](p0, margs, rgb, depth, vm_ref, basis, mf, pw)  # on the last stage's pixels
         return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last, info
 
     if len(_TRACK_FNS) > 8:
         _TRACK_FNS.pop(next(iter(_TRACK_FNS)))
     _TRACK_FNS[key] = run
     return run
+
+
+def pose_jacobian(gmap: GaussianMap, rgb, depth, viewmat, K, width: int, height: int, method: str = "analytic",
+                  config: TrackerConfig | None = None, basis=None, order: int = 2):
+    """The tracker's residuals at ``viewmat`` and their Jacobian w.r.t. the pose, as the
+    Levenberg-Marquardt stage forms it (for tests and diagnostics; the tracker forms its own
+    inside its jitted loop).
+
+    Args:
+        gmap: the map (all active Gaussians are rendered). rgb (H, W, 3), depth (H, W) m: the frame.
+        viewmat (4, 4), K (3, 3), width, height: the camera.
+        method: "analytic" (:func:`splatsearch.tracking_gn.analytic_jacobian`), "finite-difference"
+            (forward differences, step ``config.gn_fd_step``) or "central" (central differences of
+            the same step, a reference).
+        config: supplies sil_thresh, outlier_k, gn_fd_step. basis: (6, k) (default: identity).
+        order: the analytic Jacobian's image derivative (2: central differences, 4: five-point).
+
+    Returns:
+        (J (H, W, 4, k), residual (H, W, 4) rendered minus observed (depth, colour), trusted
+        pixel mask (H, W) float), numpy float32.
+    """
+    from splatsearch.tracking_gn import analytic_jacobian
+
+    cfg = config or TrackerConfig()
+    Kj = jnp.asarray(np.asarray(K, np.float32))
+    vm = jnp.asarray(np.asarray(viewmat, np.float32))
+    basis = jnp.eye(6, dtype=jnp.float32) if basis is None else jnp.asarray(basis, jnp.float32)
+    margs = render_args(gmap.params(), gmap.active, gmap.isotropic)
+    rgb, depth = jnp.asarray(rgb, jnp.float32), jnp.asarray(depth, jnp.float32)
+
+    @jax.jit
+    @full_precision
+    def residual(p):
+        out = rasterize(*margs, perturb_viewmat(vm, basis @ p), Kj, width, height, render_mode="RGB+D",
+                        validate=False)
+        return jnp.concatenate([out.depth - depth[..., None], out.image - rgb], -1), out.alpha[..., 0]
+
+    k = basis.shape[1]
+    r, alpha = residual(jnp.zeros(k, jnp.float32))
+    d_err = jnp.abs(r[..., 0])
+    m = (alpha > cfg.sil_thresh) & (depth > 0)
+    if cfg.outlier_k > 0:
+        med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
+        m = m & (d_err <= cfg.outlier_k * jnp.where(jnp.isfinite(med), med, jnp.inf))
+    h = cfg.gn_fd_step
+    if method == "analytic":
+        J = jax.jit(full_precision(analytic_jacobian), static_argnums=5)(r, rgb, depth, Kj, basis, order)
+    elif method == "finite-difference":
+        J = jnp.stack([(residual(h * jnp.eye(k)[j])[0] - r) / h for j in range(k)], -1)
+    elif method == "central":
+        J = jnp.stack([(residual(h * jnp.eye(k)[j])[0] - residual(-h * jnp.eye(k)[j])[0]) / (2 * h)
+                       for j in range(k)], -1)
+    else:
+        raise ValueError(f"method must be 'analytic', 'finite-difference' or 'central', got {method!r}")
+    return np.asarray(J, np.float32), np.asarray(r, np.float32), np.asarray(m, np.float32)
 
 
 def _shrink(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, s: int):

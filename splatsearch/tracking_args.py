@@ -12,13 +12,16 @@ from types import SimpleNamespace
 
 from splatsearch.cli_types import positive_int
 
-__all__ = ["DEFAULTS", "SOLVERS", "add_track_args", "flags_needing_track", "tracker_config"]
+__all__ = ["DEFAULTS", "JACOBIANS", "SOLVERS", "add_track_args", "flags_needing_track", "tracker_config"]
 
 #: TrackerConfig's defaults of the fields these options set (tests/test_f2f_prior.py checks them).
 DEFAULTS = dict(iters=40, solver="gn", gn_iters=10, gn_loss_tol=3e-3, coarse_iters=0, tol=1e-3, patience=0,
-                prior_weight=1e-3, prior_lateral_sigma=0.01, f2f_prior=True, f2f_rot_sigma=1e-3, downscale=1)
+                prior_weight=1e-3, prior_lateral_sigma=0.01, f2f_prior=True, f2f_rot_sigma=1e-3, downscale=1,
+                jacobian="finite-difference")
 #: slam.SOLVERS
 SOLVERS = ("adam", "gn")
+#: slam.JACOBIANS
+JACOBIANS = ("analytic", "finite-difference")
 
 
 def _lateral(text: str) -> float | None:
@@ -63,6 +66,11 @@ def add_track_args(m: argparse.ArgumentParser) -> None:
                         "first-order steps, --track-iters; 4-6x slower a frame)")
     m.add_argument("--track-gn-iters", type=positive_int, default=None,
                    help=f"with --track-solver gn: most Levenberg-Marquardt steps per frame (default {d.gn_iters})")
+    m.add_argument("--track-jacobian", choices=JACOBIANS, default=None,
+                   help="with --track-solver gn: how the pose Jacobian of the residuals is formed: 'analytic' (from "
+                        "the one render at the pose: its colour and depth gradients through the pinhole projection "
+                        "of its depth; saves 6 renders a frame, 3 with --track-planar) or 'finite-difference' (one "
+                        f"extra render per pose parameter); default {d.jacobian!r}")
     m.add_argument("--track-gn-loss-tol", type=_nonneg_float, default=None,
                    help="with --track-solver gn: stop after an accepted step that lowers the loss by less than this "
                         f"fraction (0: never; default {d.gn_loss_tol:g})")
@@ -106,7 +114,7 @@ def tracker_config(args: argparse.Namespace):
     tcfg = TrackerConfig(iters=args.track_iters, downscale=args.track_downscale,
                          rgbd_odometry=args.track_rgbd_odometry, planar=args.track_planar)
     for field, value in (("solver", args.track_solver), ("gn_iters", args.track_gn_iters),
-                         ("gn_loss_tol", args.track_gn_loss_tol), ("coarse_iters", args.track_coarse_iters),
+                         ("gn_loss_tol", args.track_gn_loss_tol), ("jacobian", args.track_jacobian), ("coarse_iters", args.track_coarse_iters),
                          ("patience", args.track_patience), ("prior_weight", args.track_prior_weight),
                          ("f2f_prior", args.track_f2f_prior), ("f2f_rot_sigma", args.track_f2f_rot_sigma)):
         if value is not None:
@@ -127,6 +135,7 @@ def flags_needing_track(args: argparse.Namespace) -> list[str]:
                                   ("--track-solver", args.track_solver is not None),
                                   ("--track-gn-iters", args.track_gn_iters is not None),
                                   ("--track-gn-loss-tol", args.track_gn_loss_tol is not None),
+                                  ("--track-jacobian", args.track_jacobian is not None),
                                   ("--track-patience", args.track_patience is not None),
                                   ("--track-prior-weight", args.track_prior_weight is not None),
                                   ("--track-prior-lateral", hasattr(args, "track_prior_lateral")),

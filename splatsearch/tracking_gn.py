@@ -3,8 +3,10 @@
 The tracking loss (masked L1 on depth plus ``w_color`` times L1 on colour, and the odometry
 prior ``xi^T Q xi``) is minimised over the pose parameters p (the camera-frame se(3) increment
 ``basis @ p``: 6 free or 3 planar) by damped Gauss-Newton steps. The L1 terms are reweighted as
-in IRLS (curvature 1 / max(|r|, eps) at residual r), and the residuals' Jacobian w.r.t. p comes
-from k forward-difference renders, since the rasterizer has no forward mode. See
+in IRLS (curvature 1 / max(|r|, eps) at residual r). The residuals' Jacobian w.r.t. p comes either
+from k forward-difference renders (the rasterizer has no forward mode; ``TrackerConfig.jacobian =
+"finite-difference"``) or, from the one render at p, analytically (:func:`analytic_jacobian`,
+``jacobian = "analytic"``). See
 :class:`splatsearch.slam.TrackerConfig` for the settings and :func:`splatsearch.slam.track` for
 the caller.
 """
@@ -17,11 +19,70 @@ import jax
 import jax.numpy as jnp
 
 
+def _derivative(img, axis: int, order: int):
+    """d img / d pixel along ``axis`` (0: rows, 1: columns): central differences (``order`` 2) or
+    the five-point stencil (-1, 8, 0, -8, 1) / 12 (``order`` 4: closer to the derivative of
+    detail near the pixel scale, which the three-point one flattens); one-sided at the border."""
+    g2 = jnp.gradient(img, axis=axis)
+    if order == 2:
+        return g2
+    n = img.shape[axis]
+    pad = [(0, 0)] * img.ndim
+    pad[axis] = (2, 2)
+    p = jnp.pad(img, pad, mode="edge")
+    sl = lambda a, b: jax.lax.slice_in_dim(p, a, a + n, axis=axis)  # noqa: E731
+    g4 = (-sl(4, 0) + 8 * sl(3, 0) - 8 * sl(1, 0) + sl(0, 0)) / 12.0
+    idx = jnp.arange(n)
+    inner = (idx >= 2) & (idx < n - 2)
+    shape = [1] * img.ndim
+    shape[axis] = n
+    return jnp.where(inner.reshape(shape), g4, g2)
+
+
+def analytic_jacobian(r, rgb, depth, K, basis, order: int = 2):
+    """(H, W, 4, k) Jacobian of the tracking residuals (rendered minus observed: depth m, then
+    colour) w.r.t. the pose parameters p (the camera-frame increment xi = ``basis @ p``, xi =
+    (rotation vector rad, translation m), applied as exp(xi) @ viewmat), from ONE render.
+
+    r (H, W, 4): the residuals at p (the render is ``r + (depth, rgb)``); rgb (H, W, 3), depth
+    (H, W) the observed frame; K (3, 3) the intrinsics (pixel centres at +0.5); basis (6, k).
+
+    The map is static, so moving the camera by xi moves the surface point P = z K^-1 (u, 1)
+    behind pixel u (z: the rendered depth) to P + w x P + t, whose pixel moves by
+    du = d(pi)/dP (w x P + t). To first order the render at the new pose is the old one shifted
+    by du, I'(u) = I(u) - grad I(u) . du, and its depth also changes by the point's own z
+    motion, D'(u) = D(u) - grad D(u) . du + (w x P + t)_z (direct RGB-D odometry's Jacobian,
+    Kerl et al. 2013, with the rendered image in place of the reference frame). Image gradients
+    are central differences of the render (one-sided at the border), in pixels. Pixels without
+    rendered depth get zero rows (the tracker's mask leaves them out anyway).
+    """
+    img = r + jnp.concatenate([depth[..., None], rgb], -1)  # the render: depth, colour
+    z = img[..., 0]
+    H, W = z.shape
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    ok = z > 1e-4
+    zi = jnp.where(ok, 1.0 / jnp.where(ok, z, 1.0), 0.0)
+    xz = ((jnp.arange(W, dtype=z.dtype) + 0.5 - cx) / fx)[None, :] * jnp.ones_like(z)  # x / z
+    yz = ((jnp.arange(H, dtype=z.dtype) + 0.5 - cy) / fy)[:, None] * jnp.ones_like(z)  # y / z
+    x, y = xz * z, yz * z
+    zero = jnp.zeros_like(z)
+    # d(u, v)/dxi, xi = (w, t): the pinhole's derivative times dP/dxi = [-[P]x | I]
+    du = jnp.stack([-fx * xz * yz, fx * (1 + xz * xz), -fx * yz, fx * zi, zero, -fx * xz * zi], -1)
+    dv = jnp.stack([-fy * (1 + yz * yz), fy * xz * yz, fy * xz, zero, fy * zi, -fy * yz * zi], -1)
+    dz = jnp.stack([y, -x, zero, zero, zero, jnp.ones_like(z)], -1)  # (w x P + t)_z
+    gu = _derivative(img, 1, order)  # (H, W, 4) per pixel
+    gv = _derivative(img, 0, order)
+    J = -(gu[..., None] * du[:, :, None, :] + gv[..., None] * dv[:, :, None, :])  # (H, W, 4, 6)
+    J = J.at[:, :, 0, :].add(dz)
+    J = jnp.where(ok[..., None, None] & jnp.isfinite(J), J, 0.0)
+    return J @ basis.astype(J.dtype)
+
+
 def make_gn_stage(cfg) -> Callable:
     """The Levenberg-Marquardt stage for the tracker settings ``cfg`` (a ``TrackerConfig``).
 
     Returns ``gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref)``
-    -> (p, loss, steps, trusted mask, last loss, rot_info), run inside the tracker's jit: p (k,)
+    -> (p, loss, steps, trusted mask, last loss, rot_info, start loss), run inside the tracker's jit: p (k,)
     the start, ``fn`` = (mask_at, loss, value_and_grad of loss, residual) of one image level
     (rgb (H, W, 3), depth (H, W) m), ``pw`` (6, 6) the prior's precision on xi, ``info_ref`` the
     usual rotation information (0: no information weighting); ``lr_scale`` is unused.
@@ -34,6 +95,7 @@ def make_gn_stage(cfg) -> Callable:
     eps_rel = cfg.gn_eps_rel
     refresh = cfg.gn_refresh
     info_max = cfg.prior_info_max
+    analytic = cfg.jacobian == "analytic"
 
     def _lm_delta(Hm, g, lam):
         """The damped step -(Hm + lam diag(Hm))^-1 g; a non-finite component becomes 0."""
@@ -50,7 +112,13 @@ def make_gn_stage(cfg) -> Callable:
         The IRLS weights are about 1 / (``gn_eps_rel`` x the mean |residual|) for most pixels, so
         the data metric grows as the data loss falls: ``Hd`` is scaled by the data loss where it
         was formed over the current one (without this, a start far from the minimum leaves a
-        metric several times too flat near it, and steps overshoot and are rejected)."""
+        metric several times too flat near it, and steps overshoot and are rejected).
+
+        The rasterizer's backward runs only when its gradient is used: after a step that is
+        accepted and followed by another one (a rejected step keeps the old gradient, the last
+        step's is never read). ``vg`` is (loss, its value-and-gradient); the loss's vjp gives the
+        forward at once and the backward on demand."""
+        loss_fn = vg[0]
         Ld0 = jnp.maximum(L0 - p @ Pp @ p, 1e-12)
 
         def cond(c):
@@ -61,12 +129,15 @@ def make_gn_stage(cfg) -> Callable:
             Ld = jnp.maximum(L - p @ Pp @ p, 1e-12)
             Hm = Hd * jnp.clip(Ld0 / Ld, 1.0, 100.0) + 2.0 * Pp
             delta = _lm_delta(Hm, jnp.where(jnp.isfinite(g), g, 0.0), lam)
-            L_new, g_new = vg(p + delta, *args)
+            L_new, pull = jax.vjp(lambda q: loss_fn(q, *args), p + delta)
             accept = L_new < L
             small = (jnp.max(jnp.abs(delta)) < step_tol) | (accept & (L - L_new < loss_tol * L))
-            p, L, g = (jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L), jnp.where(accept, g_new, g))
             lam = jnp.where(accept, lam * 0.3, lam * 10.0)
-            return it + 1, p, L, g, Hm, lam, small | (lam > 1e6)
+            done = small | (lam > 1e6)
+            need = accept & ~done & (it + 1 < n_iters)  # another step follows from p + delta
+            g_new = jax.lax.cond(need, lambda: pull(jnp.ones_like(L_new))[0], lambda: g)
+            p, L = jnp.where(accept, p + delta, p), jnp.where(accept, L_new, L)
+            return it + 1, p, L, g_new, Hm, lam, done
 
         c = (jnp.int32(0), p, L0, g0, Hd, jnp.float32(1e-4), jnp.asarray(False))
         k, p, L, _, _, _, _ = jax.lax.while_loop(cond, body, c)
@@ -88,17 +159,21 @@ def make_gn_stage(cfg) -> Callable:
         1 / max(|r|, eps) and slope sign(r), which majorises |r|, so a step that lowers the model
         lowers the loss while the linearisation holds. The Jacobian of the rendered depth and
         colour w.r.t. the k pose parameters comes from k forward-difference renders (the
-        rasterizer has no forward mode); a rejected step raises the damping and reuses it."""
-        mask_at, loss, vg, residual = fn
+        rasterizer has no forward mode) or, with ``cfg.jacobian == "analytic"``, from the render
+        at p (:func:`analytic_jacobian`); a rejected step raises the damping and reuses it."""
+        mask_at, loss, vg, residual, K = fn
         k_dim = p.shape[0]
         r0, mf = residual(p, margs, rgb, depth, vm_ref, basis, with_mask=True)
         n = jnp.maximum(mf.sum(), 1.0)
         a = mf[..., None] * jnp.array([1.0, w_c, w_c, w_c], jnp.float32) / n  # (H, W, 4) L1 weights
 
         def data_eq(p, r):
-            cols = [(residual(p + h_fd * jnp.eye(k_dim, dtype=p.dtype)[j], margs, rgb, depth, vm_ref, basis) - r)
-                    / h_fd for j in range(k_dim)]
-            J = jnp.stack(cols, -1)  # (H, W, 4, k)
+            if analytic:
+                J = analytic_jacobian(r, rgb, depth, K, basis)
+            else:
+                cols = [(residual(p + h_fd * jnp.eye(k_dim, dtype=p.dtype)[j], margs, rgb, depth, vm_ref, basis) - r)
+                        / h_fd for j in range(k_dim)]
+                J = jnp.stack(cols, -1)  # (H, W, 4, k)
             ar = jnp.abs(r)
             scale = jnp.sum(ar * mf[..., None], (0, 1)) / n  # mean |residual| per channel
             w = a / jnp.maximum(ar, jnp.maximum(eps, eps_rel * scale))
@@ -126,8 +201,8 @@ def make_gn_stage(cfg) -> Callable:
         g0 = gd0 + 2.0 * Pp @ p
 
         if not refresh:  # the first step's gradient is the difference quotients'
-            return (*_fixed_metric(p, n_iters, vg, (margs, rgb, depth, vm_ref, basis, mf, pw), Hd0, Pp, mf, L0, g0),
-                    info)
+            return (*_fixed_metric(p, n_iters, (loss, vg), (margs, rgb, depth, vm_ref, basis, mf, pw), Hd0, Pp, mf, L0, g0),
+                    info, L0)
         H0 = Hd0 + 2.0 * Pp
 
         def cond(c):
@@ -152,6 +227,6 @@ def make_gn_stage(cfg) -> Callable:
 
         c = (jnp.int32(0), p, L0, r0, H0, g0, jnp.float32(1e-4), jnp.asarray(False))
         k, p, L, _, _, _, _, _ = jax.lax.while_loop(cond, body, c)
-        return p, L, k, mf, L, info
+        return p, L, k, mf, L, info, L0
 
     return gn_stage
