@@ -41,9 +41,16 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict) -> dict:
     holder = {}
     statuses = []
 
+    ambiguous = [0]
+
     def on_step(agent, _obs, info):
         holder["agent"] = agent
         statuses.append(info.status)
+        # a step at which look_again >= 1 would have begun (or kept) a trip: nothing taken for the
+        # goal and an ambiguous entry left (for look_again 0 this tells whether 1 could differ)
+        if not agent.goal_candidates() and any(agent.verifier.is_ambiguous(e) and e.id not in agent.policy.given_up
+                                               for e in agent.db):
+            ambiguous[0] += 1
 
     t0 = time.perf_counter()
     load0 = os.getloadavg()[0]
@@ -57,6 +64,7 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict) -> dict:
     out = r.to_json()
     out.pop("trajectory")
     out.update({"look_again": look_again, "look_log": agent.policy.look_log, "entries": entries,
+                "ambiguous_steps": ambiguous[0],
                 "look_again_steps": statuses.count("look_again"), "load1_start": round(load0, 2),
                 "load1_end": round(os.getloadavg()[0], 2), "wall_s": round(time.perf_counter() - t0, 1),
                 "overrides": overrides})
@@ -130,6 +138,12 @@ def main(argv=None) -> int:
     ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE",
                     help="extra AgentConfig field (float or int), e.g. look_again_low=8")
     ap.add_argument("--out", default=None, help="output folder (one JSON per episode, resumable)")
+    ap.add_argument("--reverse", action="store_true", help="run the episodes last first")
+    ap.add_argument("--pair", default=None, metavar="DIR",
+                    help="the output folder of the other setting (look_again 0 vs >= 1): an episode in which "
+                         "the look-again run began no trip, or the look_again-0 run never had an ambiguous entry "
+                         "while nothing was the goal, is the same in both (deterministic), so its result is "
+                         "copied (marked deduced_from) instead of run")
     ap.add_argument("--summary", nargs="+", default=None, metavar="DIR", help="summarise finished runs and exit")
     args = ap.parse_args(argv)
     if args.summary:
@@ -156,12 +170,30 @@ def main(argv=None) -> int:
     if args.only:
         chosen = [chosen[int(i)] for i in args.only.split(",")]
     os.makedirs(args.out, exist_ok=True)
+    if args.reverse:
+        chosen = chosen[::-1]
     for ep in chosen:
-        path = os.path.join(args.out, f"ep_{ep.house_seed:04d}_{ep.episode_id:03d}.json")
+        name = f"ep_{ep.house_seed:04d}_{ep.episode_id:03d}.json"
+        path = os.path.join(args.out, name)
         if os.path.exists(path):
             continue
+        other = os.path.join(args.pair, name) if args.pair else None
+        if other and os.path.exists(other):
+            o = json.load(open(other))
+            began = [x for x in o["look_log"] if x["outcome"] != "no_viewpoint"]
+            same = (o["look_again"] >= 1 and not began) if args.look_again == 0 else (
+                o["look_again"] == 0 and o.get("ambiguous_steps", 1) == 0)
+            if same:
+                o.update({"look_again": args.look_again, "look_log": [], "look_again_steps": 0,
+                          "deduced_from": args.pair})
+                atomic_write_bytes(path, json.dumps(o, indent=1).encode())
+                print(json.dumps({"deduced": name, "from": args.pair}), flush=True)
+                continue
         r = run(ep, args.look_again, args.max_steps, overrides)
         atomic_write_bytes(path, json.dumps(r, indent=1).encode())
+        if other and not os.path.exists(other) and args.look_again == 0 and r["ambiguous_steps"] == 0:
+            o = dict(r, look_again=1, deduced_from=args.out)  # the look-again run would be the same
+            atomic_write_bytes(other, json.dumps(o, indent=1).encode())
         print(json.dumps({k: r[k] for k in ("house_seed", "episode_id", "success", "spl", "steps", "wall_s",
                                              "look_again_steps", "load1_start")}), flush=True)
     return 0
