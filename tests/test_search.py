@@ -613,6 +613,10 @@ def test_verify_object_uses_given_cameras_and_checks_them(random_blob_map):
     goal = rng.uniform(0, 1, (48, 64, 3)).astype(np.float32)
     res = verify_object(goal, gmap, [0.0, 0.0, 0.0], K, 64, 48, viewmats=vms[:2])
     assert res.viewmats.shape == (2, 4, 4) and np.allclose(res.viewmats, vms[:2]) and res.images.shape[0] == 2
+    # the renders' opacity comes back (the look-again step's hole fractions); uncropped, its holes are
+    # exactly the ones completed
+    assert res.alpha.shape == (2, 48, 64) and res.alpha.dtype == np.float32
+    assert np.array_equal(res.holes, res.alpha < 0.5) and 0 < res.holes.mean() < 1
     with pytest.raises(ValueError, match="viewmats"):
         verify_object(goal, gmap, [0.0, 0.0, 0.0], K, 64, 48, viewmats=np.eye(4))
 

@@ -83,6 +83,16 @@ class AgentConfig:
     grows with its mask up to ``colour_full_px`` pixels. Objects the cue already decides get no
     feature matching (it could not change the decision).
 
+    Look again (issue 23, opt-in): ``look_again`` is the number of new viewpoints from which an
+    ambiguous goal-class object is looked at again (0: none); ambiguous means at least one NVSM
+    run, not the goal, and a best count e_max of at least ``look_again_low`` but below tau_m. The
+    robot walks (FMM) to a free cell about ``look_again_distance`` m from the object, reachable
+    within ``look_again_max_path`` m of path, at the azimuth that its stored observations miss most
+    and the last NVSM run's renders left emptiest (look_again.choose_viewpoint), turns to face it,
+    adds that frame to the object's observations and runs its NVSM again. A trip that takes more
+    than ``look_again_steps`` steps is abandoned (it still counts as one of the object's views);
+    the moves are episode steps, and an object taken for the goal ends the look-again.
+
     Planning: ``alpha``, ``beta``, ``delta``: eq 19 weights. ``stop_margin`` (m): stop this close
     to a goal object's extent. ``goal_patience``: reachable steps without getting 0.1 m closer
     to a goal object before it is given up. ``verify_steps``: steps spent next to an object whose
@@ -124,6 +134,11 @@ class AgentConfig:
     goal_patience: int = 60
     identify_every_frame: bool = True
     verify_steps: int = 6
+    look_again: int = 0
+    look_again_low: float = 9.0
+    look_again_distance: float = 1.6
+    look_again_max_path: float = 8.0
+    look_again_steps: int = 40
     colour_cue: bool = True
     tau_a: float = 0.45
     colour_min_views: int = 2
@@ -143,6 +158,10 @@ class AgentConfig:
             raise ValueError(f"nvsm_fill must be 'none' or 'global', got {self.nvsm_fill!r}")
         if self.map_every < 1 or not 0 < self.map_scale <= 1 or self.n_views < 1:
             raise ValueError("need map_every >= 1, 0 < map_scale <= 1 and n_views >= 1")
+        if self.look_again < 0 or self.look_again_steps < 1 or not (
+                self.look_again_distance > 0 and self.look_again_max_path > 0 and self.look_again_low >= 0):
+            raise ValueError("need look_again >= 0, look_again_steps >= 1, look_again_distance > 0, "
+                             "look_again_max_path > 0 and look_again_low >= 0")
         if not (0 <= self.colour_veto <= self.tau_a <= 1) or self.colour_min_views < 1 \
                 or self.colour_full_px < 1:
             raise ValueError("need 0 <= colour_veto <= tau_a <= 1, colour_min_views >= 1 and "

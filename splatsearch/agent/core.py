@@ -125,9 +125,10 @@ class SplatSearchAgent:
         if ecfg.delta > 0:
             self.explorer.set_goal_image(self.goal)
         self.policy = SearchPolicy(cfg, strategy, self.perception.db, self.verifier, self.explorer,
-                                   self.perception.crop_cosine)
+                                   self.perception.crop_cosine, observations=self.perception.observations)
         self.frame_index = 0
         self._last_action: str | None = None
+        self._frame_now: tuple | None = None  # (rgb, depth, viewmat) of the step being decided
 
     # -- what the viewer and the episode runner read ------------------------------------------
     @property
@@ -194,7 +195,10 @@ class SplatSearchAgent:
             t["identify"] = time.perf_counter() - t1
         self.frame_index += 1
         t1 = time.perf_counter()
-        action, status = self.policy.decide(pose, self.frame_index, verify_all=self._verify_unverified)
+        self._frame_now = (rgb, depth, viewmat)
+        action, status = self.policy.decide(pose, self.frame_index, verify_all=self._verify_unverified,
+                                            capture=self._look_again_capture)
+        self._frame_now = None
         self._last_action = action
         t["plan"] = time.perf_counter() - t1
         d = self.policy.last_decision
@@ -220,6 +224,14 @@ class SplatSearchAgent:
             if e.n_nvsm == 0 and self.verifier.can_decide(e):
                 self.verifier.verify(self.db, e.id, self.perception.observations, self.explorer.occupancy,
                                      self._fill_map())
+
+    def _look_again_capture(self, entry_id: int) -> None:
+        """The look-again step faces entry ``entry_id`` from a new viewpoint: keep this frame among its
+        observations (so its local map includes it) and run its NVSM again."""
+        rgb, depth, viewmat = self._frame_now
+        self.perception.observations.add(entry_id, rgb, depth, viewmat)
+        self.verifier.verify(self.db, entry_id, self.perception.observations, self.explorer.occupancy,
+                             self._fill_map())
 
     def _fill_map(self):
         """The map composited under the NVSM's local-map renders (``AgentConfig.nvsm_fill``)."""

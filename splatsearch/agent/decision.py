@@ -11,6 +11,13 @@
    with the most evidence (colours, then e_max, then the crop cosine), chosen again every step
    with some hysteresis, since the way there shows the other objects again.
 
+With ``look_again`` > 0 (opt-in), an object whose NVSM left it ambiguous
+(:meth:`Verifier.is_ambiguous`) comes between 1 and 2-4: while nothing is taken for the goal, the
+robot walks to a viewpoint that sees what the object's local map lacks
+(:func:`~splatsearch.agent.look_again.choose_viewpoint`), turns to face the object, and the
+agent's ``capture`` callback adds that frame to the object's observations and runs its NVSM
+again (``look_again`` views per object at most, ``look_again_steps`` steps per trip).
+
 A goal that gets no closer for ``goal_patience`` reachable steps, or that no path reaches once
 the house is explored, is given up and the next candidate taken. The explorer is asked once per
 step (twice in the one step where it reports the house explored and a fallback target is then
@@ -26,7 +33,13 @@ from splatsearch.nav.grid import wrap_angle
 from splatsearch.search.objects import ObjectDB, ObjectEntry
 
 from .config import AgentConfig, Strategy
+from .look_again import azimuths_of, choose_viewpoint
 from .verification import Verifier
+
+#: metres from a look-again viewpoint at which the robot counts as there
+LOOK_AGAIN_RADIUS = 0.25
+#: the robot faces the object when its bearing is within this (degrees): a 30-degree turn lattice
+LOOK_AGAIN_FACING_DEG = 15.0
 
 #: hysteresis of the end-of-exploration fallback: another entry replaces the current one only
 #: when its colour similarity is higher by more than this, or when it is about as similar and has
@@ -44,14 +57,18 @@ class SearchPolicy:
             strategy that identifies after exploring, runs their NVSM then (``verify_all``).
         explorer: the :class:`ExplorationPlanner`, asked for the action of each step.
         crop_cosine: entry id -> best crop cosine (the fallback's last tie-break).
+        observations: the objects' stored observations (their cameras tell the look-again step
+            which sides were seen); optional without ``look_again``.
 
     State: ``explored`` (the explorer found no frontier left), ``given_up`` (entry ids not to be
-    chosen again), and for display ``target_entry``, ``path_xy`` (P, 2) metres and
-    ``last_decision`` (the explorer's latest frontier decision).
+    chosen again), for display ``target_entry``, ``path_xy`` (P, 2) metres and
+    ``last_decision`` (the explorer's latest frontier decision), and for the look-again step
+    ``looks`` (entry id -> views begun) and ``look_log`` (one dict per trip: entry, start and end
+    step, outcome, the viewpoint and path metres, e_max before and after).
     """
 
     def __init__(self, config: AgentConfig, strategy: Strategy, db: ObjectDB, verifier: Verifier,
-                 explorer: ExplorationPlanner, crop_cosine: dict[int, float]):
+                 explorer: ExplorationPlanner, crop_cosine: dict[int, float], observations=None):
         self.cfg, self.strategy = config, strategy
         self.db, self.verifier, self.explorer = db, verifier, explorer
         self.crop_cosine = crop_cosine
@@ -63,6 +80,11 @@ class SearchPolicy:
         self._fallback: int | None = None
         self._verify: tuple[int, int] | None = None  # (entry id, step the verification began)
         self._progress: list | None = None  # [entry id, best distance m, steps without progress]
+        self.observations = observations
+        self.looks: dict[int, int] = {}
+        self.look_log: list[dict] = []
+        self._look: dict | None = None  # the trip under way
+        self._looked_from: dict[int, list[float]] = {}  # entry id -> azimuths of its look-again viewpoints
 
     # -- which entries --------------------------------------------------------------------------
     def identifies_now(self) -> bool:
@@ -117,14 +139,94 @@ class SearchPolicy:
         return self._progress[2] > self.cfg.goal_patience
 
     # -- one step -------------------------------------------------------------------------------
-    def decide(self, pose: np.ndarray, step: int, verify_all=None) -> tuple[str, str]:
+    def decide(self, pose: np.ndarray, step: int, verify_all=None, capture=None) -> tuple[str, str]:
         """(action, status) for robot ``pose`` (x, y, yaw) at step index ``step`` (frames seen
         so far). ``verify_all()``: called once the house is explored when the strategy identifies
-        only then (it runs the due verification)."""
+        only then (it runs the due verification). ``capture(entry_id)``: adds the current frame to
+        the entry's observations and runs its NVSM again (the look-again step; without it, or with
+        ``look_again`` 0, there is none)."""
+        if capture is not None and self.cfg.look_again > 0 and self.strategy.nvsm_during_search:
+            out = self._look_again(np.asarray(pose, np.float64), step, capture)
+            if out is not None:
+                return out
         action, status = self._decide(pose, step, verify_all, after_exploring=False)
         if status == "explored_now":
             action, status = self._decide(pose, step, verify_all, after_exploring=True)
         return action, status
+
+    # -- looking again --------------------------------------------------------------------------
+    def _end_look(self, step: int, outcome: str) -> None:
+        lk, self._look = self._look, None
+        e = self.db[lk["entry"]]
+        self.look_log.append({"entry": e.id, "start": lk["start"], "end": int(step), "outcome": outcome,
+                              "xy": [float(v) for v in lk["xy"]], "path_m": round(float(lk["path"]), 2),
+                              "e_max_before": float(lk["e_max"]), "e_max_after": float(e.e_max)})
+
+    def _start_look(self, pose: np.ndarray, step: int) -> dict | None:
+        """Begin a trip to the most matched ambiguous entry that has views left and a viewpoint."""
+        cfg = self.cfg
+        cands = [e for e in self.db if e.id not in self.given_up and self.looks.get(e.id, 0) < cfg.look_again
+                 and self.verifier.is_ambiguous(e)]
+        if not cands:
+            return None
+        occ = self.explorer.occupancy
+        D = self.explorer.planner().distance_from(pose[:2])
+        for e in sorted(cands, key=lambda x: -x.e_max):
+            self.looks[e.id] = self.looks.get(e.id, 0) + 1
+            frames = self.observations[e.id] if self.observations is not None else []
+            seen = list(azimuths_of([f.viewmat for f in frames], e.centroid)) + self._looked_from.get(e.id, [])
+            vh = self.verifier.view_holes.get(e.id)
+            v = choose_viewpoint(e.centroid, e.extent_radius, occ.spec, occ.occupied, D, seen,
+                                 view_azimuths=None if vh is None else azimuths_of(vh[0], e.centroid),
+                                 view_holes=None if vh is None else vh[1], distance=cfg.look_again_distance,
+                                 max_path=cfg.look_again_max_path)
+            if v is None:
+                self.looks[e.id] = cfg.look_again  # nowhere to look from: no more trips for it
+                self.look_log.append({"entry": e.id, "start": int(step), "end": int(step), "outcome": "no_viewpoint",
+                                      "xy": None, "path_m": None, "e_max_before": float(e.e_max),
+                                      "e_max_after": float(e.e_max)})
+                continue
+            self._looked_from.setdefault(e.id, []).append(v.azimuth)
+            return {"entry": e.id, "xy": v.xy, "start": int(step), "path": v.path, "e_max": e.e_max}
+        return None
+
+    def _look_again(self, pose: np.ndarray, step: int, capture) -> tuple[str, str] | None:
+        """The action of a look-again trip, or None when there is none (a goal is known, nothing is
+        ambiguous, or no viewpoint is left). Arriving and facing the object, it calls
+        ``capture(entry_id)`` and goes on with the next trip, if any."""
+        cfg = self.cfg
+        while True:
+            if self.goal_candidates():
+                if self._look is not None:
+                    self._end_look(step, "goal_found")
+                return None
+            if self._look is None:
+                self._look = self._start_look(pose, step)
+                if self._look is None:
+                    return None
+            lk = self._look
+            e = self.db[lk["entry"]]
+            if e.id in self.given_up or not self.verifier.is_ambiguous(e):
+                self._end_look(step, "decided")
+                continue
+            if step - lk["start"] >= cfg.look_again_steps:
+                self._end_look(step, "timeout")
+                continue
+            self.target_entry = e.id
+            d = self.explorer.act(pose, self._object_scores(), goal_xy=lk["xy"], goal_radius=LOOK_AGAIN_RADIUS)
+            plan = d.goal
+            self.path_xy = d.goal_path
+            if plan.status == "unreachable":
+                self._end_look(step, "unreachable")
+                continue
+            if plan.status in ("reached", "closest"):
+                err = bearing_error(pose, e.centroid)
+                if abs(err) > np.radians(LOOK_AGAIN_FACING_DEG):
+                    return ("turn_left" if err > 0 else "turn_right"), "look_again"
+                capture(e.id)
+                self._end_look(step, "captured")
+                continue
+            return plan.action, "look_again"
 
     def _target(self, verify_all) -> tuple[ObjectEntry | None, bool]:
         matched = self.goal_candidates()

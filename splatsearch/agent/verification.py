@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from splatsearch.nav.occupancy import FREE, OCCUPIED, OccupancyGrid
-from splatsearch.search.inpainting import Inpainter
+from splatsearch.search.inpainting import Inpainter, holes_from_alpha
 from splatsearch.search.local_map import ObservationStore, build_local_map, region_box
 from splatsearch.search.matching import Matcher
 from splatsearch.search.novel_views import clear_viewpoints, hemisphere_viewpoints
@@ -54,7 +54,9 @@ class Verifier:
         colour_cue: whether colour similarities are recorded (perception found the goal object
             in the goal image); without it the decision rests on feature matches alone.
 
-    State: :attr:`nvsm_runs` (NVSM runs so far) and :attr:`last_views` (the latest run's views).
+    State: :attr:`nvsm_runs` (NVSM runs so far), :attr:`last_views` (the latest run's views) and
+    :attr:`view_holes` (entry id -> (cameras (V, 4, 4), fraction of each render left empty) of its
+    latest run, for the look-again step).
     """
 
     def __init__(self, goal: np.ndarray, K: np.ndarray, width: int, height: int, config: AgentConfig,
@@ -74,6 +76,7 @@ class Verifier:
                                       floor_z=None, fill_crop=config.nvsm_fill_crop)
         self.nvsm_runs = 0
         self.last_views: NovelViews | None = None
+        self.view_holes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     # -- the decision -----------------------------------------------------------------------
     def colour_confirms(self, e: ObjectEntry) -> bool:
@@ -98,6 +101,13 @@ class Verifier:
     def looks_promising(self, e: ObjectEntry) -> bool:
         """Colours that reach ``tau_a`` from too few viewpoints to confirm it: worth a closer look."""
         return self.colour_cue and not self.is_goal(e) and e.colour_similarity >= self.cfg.tau_a
+
+    def is_ambiguous(self, e: ObjectEntry) -> bool:
+        """The NVSM left ``e`` undecided: at least one run, not taken for the goal, feature matches
+        could still decide it, and its best count (camera-image scale) is at least
+        ``look_again_low`` but below tau_m. The look-again step looks at such objects again."""
+        return (e.n_nvsm > 0 and not self.is_goal(e) and self.can_decide(e)
+                and self.cfg.look_again_low <= e.e_max < self.cfg.tau_m)
 
     # -- evidence ---------------------------------------------------------------------------
     def match_observation(self, db: ObjectDB, entry_id: int, rgb: np.ndarray, mask: np.ndarray) -> int:
@@ -128,6 +138,9 @@ class Verifier:
         db.record_match(entry_id, scaled, score.i_star, cfg.tau_m, score.viewmats[score.i_star])
         self.nvsm_runs += 1
         self.last_views = NovelViews(entry_id, score.viewmats, score.rendered, score.images, score.counts, score.i_star)
+        empty = (holes_from_alpha(score.alpha, self.nvsm_config.alpha_tau) if score.alpha is not None
+                 else np.asarray(score.holes, bool))
+        self.view_holes[entry_id] = (np.asarray(score.viewmats, np.float64), empty.reshape(len(empty), -1).mean(1))
         return score
 
     def nvsm_viewpoints(self, e: ObjectEntry, occupancy: OccupancyGrid | None) -> np.ndarray | None:

@@ -31,6 +31,8 @@ class NVSMResult(NamedTuple):
         viewmats: (V, 4, 4) the NVSM cameras; images: (V, H, W, 3) the completed views;
         holes: (V, H, W) bool, the pixels that were inpainted (for a cropped render, not the
             flat-filled background); rendered: (V, H, W, 3) the views before completion.
+        alpha: (V, H, W) float32 accumulated opacity of the renders (after any fill), or None;
+            what the local map covers from each camera (the look-again step reads its holes).
     """
 
     i_star: int
@@ -41,6 +43,7 @@ class NVSMResult(NamedTuple):
     images: np.ndarray
     holes: np.ndarray
     rendered: np.ndarray
+    alpha: np.ndarray | None = None
 
 
 @dataclass
@@ -136,4 +139,7 @@ def verify_object(goal: np.ndarray, gmap: Any, centroid: Sequence[float], K: np.
     else:
         images = inpainter.inpaint(rgb, holes)
     bv = best_view(goal, images, matcher)
-    return NVSMResult(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes, rgb)
+    a = np.asarray(alpha, np.float32)
+    if a.ndim == 4:
+        a = a[..., 0]
+    return NVSMResult(bv.i_star, bv.e_max, bv.counts, bool(bv.e_max >= cfg.tau_m), vms, images, holes, rgb, a)

@@ -1,0 +1,203 @@
+"""SR / SPL of the look-again step on dev look-alike houses (issue 23; never evaluation houses).
+
+    python benchmarks/look_again_dev.py --look-again 0 --out runs/look_again/la0
+    python benchmarks/look_again_dev.py --look-again 1 --out runs/look_again/la1
+    python benchmarks/look_again_dev.py --summary runs/look_again/la0 runs/look_again/la1
+
+The episodes are those of ``benchmarks/nvsm_views.py --set dev --first-house 500 --episodes 16``
+(val-hard episodes of look-alike houses 500 onward whose goal has a same-class instance, sampled
+as the evaluation samples its own), run with the ``splatsearch`` variant identifying by feature
+matches alone (``colour_cue=False``, as ``splatsearch eval --identical-furniture
+--no-appearance``). One ``OUT/ep_<house>_<id>.json`` per episode (atomic, resumable) with the
+outcome, the look-again trips (``SearchPolicy.look_log``), and every object entry's final e_max with
+the simulator instance it maps to, so that the goal's count can be compared with the best
+look-alike's (the agent's own verification counts, camera-image scale).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+
+def run(ep, look_again: int, max_steps: int | None, overrides: dict) -> dict:
+    from nvsm_views import _nearest_instance
+
+    from splatsearch.agent import AgentConfig
+    from splatsearch.episode import run_episode
+    from splatsearch.sim.env import HouseEnv
+    from splatsearch.sim.episodes import house_for_episode
+
+    env = HouseEnv(house_for_episode(ep), width=ep.goal_width, height=ep.goal_height)
+    cfg = AgentConfig(variant="splatsearch", colour_cue=False, look_again=look_again, **overrides)
+    holder = {}
+    statuses = []
+
+    ambiguous = [0]
+
+    def on_step(agent, _obs, info):
+        holder["agent"] = agent
+        statuses.append(info.status)
+        # a step at which look_again >= 1 would have begun (or kept) a trip: nothing taken for the
+        # goal and an ambiguous entry left (for look_again 0 this tells whether 1 could differ)
+        if not agent.goal_candidates() and any(agent.verifier.is_ambiguous(e) and e.id not in agent.policy.given_up
+                                               for e in agent.db):
+            ambiguous[0] += 1
+
+    t0 = time.perf_counter()
+    load0 = os.getloadavg()[0]
+    r = run_episode(ep, cfg, env=env, max_steps=max_steps, on_step=on_step)
+    agent = holder["agent"]
+    entries = []
+    for e in agent.db:
+        inst, dist = _nearest_instance(env.house, e.label, e.centroid)
+        entries.append({"entry": e.id, "instance": inst, "dist": round(dist, 2), "is_goal": inst == ep.goal_instance_id,
+                        "e_max": e.e_max, "n_nvsm": e.n_nvsm, "matched": e.matched})
+    out = r.to_json()
+    out.pop("trajectory")
+    out.update({"look_again": look_again, "look_log": agent.policy.look_log, "entries": entries,
+                "ambiguous_steps": ambiguous[0],
+                "look_again_steps": statuses.count("look_again"), "load1_start": round(load0, 2),
+                "load1_end": round(os.getloadavg()[0], 2), "wall_s": round(time.perf_counter() - t0, 1),
+                "overrides": overrides})
+    return out
+
+
+def separation(rows: list[dict]) -> dict:
+    """Per episode the goal instance's best e_max vs the best look-alike's (over entries that map to
+    an instance within 1 m); ROC AUC over all goal vs look-alike objects, and paired W/T/L."""
+    goals, others, wtl = [], [], [0, 0, 0]
+    for r in rows:
+        best: dict[int, float] = {}
+        for e in r["entries"]:
+            if e["dist"] <= 1.0 and e["e_max"] >= 0:
+                best[e["instance"]] = max(best.get(e["instance"], 0.0), e["e_max"])
+        g = [v for k, v in best.items() if any(x["is_goal"] for x in r["entries"] if x["instance"] == k)]
+        o = [v for k, v in best.items() if not any(x["is_goal"] for x in r["entries"] if x["instance"] == k)]
+        goals += g
+        others += o
+        if g and o:
+            d = max(g) - max(o)
+            wtl[0 if d > 0 else (1 if d == 0 else 2)] += 1
+    if goals and others:
+        gg, oo = np.asarray(goals)[:, None], np.asarray(others)[None, :]
+        auc = float(((gg > oo) + 0.5 * (gg == oo)).mean())
+    else:
+        auc = float("nan")
+    return {"auc": auc, "n_goals": len(goals), "n_lookalikes": len(others), "wtl": wtl}
+
+
+def summary(dirs: list[str]) -> int:
+    per = {}
+    for d in dirs:
+        rows = [json.load(open(p)) for p in sorted(glob.glob(os.path.join(d, "ep_*.json")))]
+        per[d] = {(r["house_seed"], r["episode_id"]): r for r in rows}
+    common = sorted(set.intersection(*(set(v) for v in per.values()))) if per else []
+    print(f"{len(common)} episodes finished in every run")
+    for d, rows in per.items():
+        rs = [rows[k] for k in common]
+        n = max(len(rs), 1)
+        sr = sum(r["success"] for r in rs) / n
+        spl = sum(r["spl"] for r in rs) / n
+        trips = sum(len([x for x in r["look_log"] if x["outcome"] != "no_viewpoint"]) for r in rs)
+        cap = sum(sum(x["outcome"] == "captured" for x in r["look_log"]) for r in rs)
+        la_steps = sum(r["look_again_steps"] for r in rs)
+        sep = separation(rs)
+        print(f"{d}: SR {sr:.3f} ({sum(r['success'] for r in rs)}/{len(rs)}), SPL {spl:.3f}, "
+              f"median steps {np.median([r['steps'] for r in rs]) if rs else 0:.0f}, "
+              f"median wall {np.median([r['wall_s'] for r in rs]) if rs else 0:.0f} s, trips {trips} "
+              f"(captured {cap}), look-again steps {la_steps}; agent e_max separation AUC {sep['auc']:.3f} "
+              f"({sep['n_goals']} goals, {sep['n_lookalikes']} look-alikes), W/T/L {sep['wtl']}")
+    if len(per) == 2 and common:
+        a, b = (per[d] for d in dirs)
+        w = sum(b[k]["success"] and not a[k]["success"] for k in common)
+        l_ = sum(a[k]["success"] and not b[k]["success"] for k in common)
+        print(f"paired successes, {dirs[1]} vs {dirs[0]}: {w} won, {l_} lost, {len(common) - w - l_} tied")
+        for k in common:
+            if a[k]["success"] != b[k]["success"] or a[k]["steps"] != b[k]["steps"]:
+                print(f"  {k}: {a[k]['success']}/{a[k]['steps']} steps -> {b[k]['success']}/{b[k]['steps']} steps; "
+                      f"trips {[(x['outcome'], x['e_max_before'], x['e_max_after']) for x in b[k]['look_log']]}")
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--look-again", type=int, default=0, help="AgentConfig.look_again (views per ambiguous object)")
+    ap.add_argument("--episodes", type=int, default=16, help="dev episodes with a look-alike (default 16)")
+    ap.add_argument("--first-house", type=int, default=500, help="first dev house seed (default 500, < 1000)")
+    ap.add_argument("--max-steps", type=int, default=None, help="step cap (default the episode's, 1000)")
+    ap.add_argument("--only", default=None, help="comma-separated episode indices (0-based) of the 16 to run")
+    ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE",
+                    help="extra AgentConfig field (float or int), e.g. look_again_low=8")
+    ap.add_argument("--out", default=None, help="output folder (one JSON per episode, resumable)")
+    ap.add_argument("--reverse", action="store_true", help="run the episodes last first")
+    ap.add_argument("--pair", default=None, metavar="DIR",
+                    help="the output folder of the other setting (look_again 0 vs >= 1): an episode in which "
+                         "the look-again run began no trip, or the look_again-0 run never had an ambiguous entry "
+                         "while nothing was the goal, is the same in both (deterministic), so its result is "
+                         "copied (marked deduced_from) instead of run")
+    ap.add_argument("--summary", nargs="+", default=None, metavar="DIR", help="summarise finished runs and exit")
+    args = ap.parse_args(argv)
+    if args.summary:
+        return summary(args.summary)
+    if args.out is None:
+        ap.error("--out is needed to run")
+    import warp as wp
+
+    wp.config.quiet = True
+    from nvsm_views import dev_episodes, has_lookalike
+
+    from splatsearch.evaluation import EVAL_SEED_BASE
+    from splatsearch.io import atomic_write_bytes
+    from splatsearch.sim.episodes import house_for_episode
+
+    if args.first_house + 10 >= EVAL_SEED_BASE:
+        ap.error("dev houses only (seeds below 1000)")
+    overrides = {}
+    for kv in args.agent:
+        k, v = kv.split("=", 1)
+        overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+    pool = dev_episodes(100, args.first_house, seed=0)
+    chosen = [ep for ep in pool if has_lookalike(house_for_episode(ep), ep)][:args.episodes]
+    if args.only:
+        chosen = [chosen[int(i)] for i in args.only.split(",")]
+    os.makedirs(args.out, exist_ok=True)
+    if args.reverse:
+        chosen = chosen[::-1]
+    for ep in chosen:
+        name = f"ep_{ep.house_seed:04d}_{ep.episode_id:03d}.json"
+        path = os.path.join(args.out, name)
+        if os.path.exists(path):
+            continue
+        other = os.path.join(args.pair, name) if args.pair else None
+        if other and os.path.exists(other):
+            o = json.load(open(other))
+            began = [x for x in o["look_log"] if x["outcome"] != "no_viewpoint"]
+            same = (o["look_again"] >= 1 and not began) if args.look_again == 0 else (
+                o["look_again"] == 0 and o.get("ambiguous_steps", 1) == 0)
+            if same:
+                o.update({"look_again": args.look_again, "look_log": [], "look_again_steps": 0,
+                          "deduced_from": args.pair})
+                atomic_write_bytes(path, json.dumps(o, indent=1).encode())
+                print(json.dumps({"deduced": name, "from": args.pair}), flush=True)
+                continue
+        r = run(ep, args.look_again, args.max_steps, overrides)
+        atomic_write_bytes(path, json.dumps(r, indent=1).encode())
+        if other and not os.path.exists(other) and args.look_again == 0 and r["ambiguous_steps"] == 0:
+            o = dict(r, look_again=1, deduced_from=args.out)  # the look-again run would be the same
+            atomic_write_bytes(other, json.dumps(o, indent=1).encode())
+        print(json.dumps({k: r[k] for k in ("house_seed", "episode_id", "success", "spl", "steps", "wall_s",
+                                             "look_again_steps", "load1_start")}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
