@@ -177,6 +177,7 @@ class PlanResult:
     votes: np.ndarray | None = None
     similarity: float = 1.0
     text_used: bool = True  # E_T reached the TSM (the variant has text and the gate passed)
+    retrieved: int = -1  # index into D_T of the retrieved E_T
 
 
 class OliviaNav:
@@ -216,7 +217,7 @@ class OliviaNav:
         j = int(j)
         logits = np.asarray(logits)
         return PlanResult(np.asarray(trajs), logits, int(np.argmax(logits)), self.db.captions[j],
-                          int(self.db.actions[j]), np.asarray(e_i), np.asarray(votes), float(sim), bool(used))
+                          int(self.db.actions[j]), np.asarray(e_i), np.asarray(votes), float(sim), bool(used), j)
 
 
 def route_ahead(path: np.ndarray, xy: np.ndarray, n: int, step: float = 0.24) -> np.ndarray:
@@ -240,7 +241,12 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     (:func:`~splatsearch.social.olivia.features.expert_action`). ``plan_ms`` is the mean wall-clock
     per planning cycle. ``trace``: a list that gets, per plan, the step ``t``, the ``pose``, the
     world plans ``cand``, the networks' ``logits``, the retrieved caption's ``similarity`` and
-    ``action``, the ``route`` in use and :func:`selection_scores`' parts."""
+    ``action`` (and its index ``retrieved`` in D_T), the ``route`` in use,
+    :func:`selection_scores`' parts and the ``index`` selected; and what re-scoring the same
+    state needs: the observation ``obs``, the people seen (``seen_people``, ``seen_vel``), the
+    followed plan ``prev_world`` made ``elapsed`` s ago, the map ``clearance``, and the
+    simulator's people ``peds`` and the robot's last command ``cmd`` (for a reference rollout
+    from that state)."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()
@@ -281,11 +287,14 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
             parts = selection_scores(res.logits, cand, pose, traj_world, since * scn.dt, people[-1][seen], vel[seen],
                                      clr, cfg)
             score = parts["score"]
-            if trace is not None:
-                trace.append({"t": t, "pose": pose.copy(), "cand": cand, "logits": np.asarray(res.logits),
-                              "similarity": res.similarity, "action": res.action, "text_used": res.text_used,
-                              "route": path} | parts)
             k = int(np.argmax(score))
+            if trace is not None:
+                trace.append({"t": t, "pose": pose.copy(), "cand": cand, "trajs": res.trajs, "logits": np.asarray(res.logits),
+                              "similarity": res.similarity, "action": res.action, "text_used": res.text_used,
+                              "retrieved": res.retrieved, "route": path, "index": k, "obs": obs,
+                              "seen_people": people[-1][seen], "seen_vel": vel[seen], "prev_world": traj_world,
+                              "elapsed": since * scn.dt, "clearance": clr, "peds": peds,
+                              "cmd": cmds[-1] if cmds else np.zeros(2, np.float32)} | parts)
             traj_world = np.vstack([pose[None, :2], cand[k]])
             if cfg.route_fallback and clr is not None and np.all(parts["map"] > 0):
                 # every plan runs into the map (a door post ahead): the NC follows the static

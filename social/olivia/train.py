@@ -727,6 +727,36 @@ def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Se
             "per_view": rows}
 
 
+def caption_buffer(buf: LLUBuffer) -> list[str]:
+    """The long captions of the buffer's views by the template captioner (the offline stand-in
+    for the large VLM; it reads each view's privileged scene)."""
+    cap = TemplateCaptioner()
+    return [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
+
+
+def apply_llu(planner: OliviaNav, buf: LLUBuffer, captions: Sequence[str], llu: LLUConfig = LLUConfig(),
+              train_captions: Sequence[str] | None = None) -> tuple[OliviaNav, list[float]]:
+    """One LLU update (i -> i+1) of ``planner`` on the buffer's images and their ``captions``:
+    eq 4 fine-tunes F_I and F_T (:func:`llu_update`), D_T is rebuilt with the new F_T from the
+    offline captions (``train_captions``, default the planner's D_T's) plus the new ones, and with
+    ``llu.view_entries`` gets one entry per view keyed by its E_I (:func:`add_view_entries`).
+    Returns the updated planner (whose TPN keeps the F_I it was trained with, ``clip_tpn``) and
+    eq 4's per-step losses."""
+    imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
+                     for im in buf.images])
+    new_clip, losses = llu_update(planner.params["clip"], imgs, list(captions), llu, planner.cfg.clip)
+    base = list(train_captions) if train_captions is not None else list(planner.db.captions)
+    db = build_text_db(new_clip, base + list(captions), planner.cfg.clip)
+    if llu.view_entries:
+        db = add_view_entries(db, encode_all_images(new_clip, imgs, planner.cfg.clip),
+                              encode_all_texts(new_clip, list(captions), planner.cfg.clip), list(captions))
+    # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans
+    after = OliviaNav(dict(planner.params, clip=new_clip,
+                           clip_tpn=planner.params.get("clip_tpn", planner.params["clip"])),
+                      db, planner.cfg, planner.variant)
+    return after, losses
+
+
 def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequence[int] = LLU_ADAPT_SEEDS,
               test_seeds: Sequence[int] = LLU_TEST_SEEDS, llu: LLUConfig = LLUConfig(),
               train_captions: Sequence[str] | None = None, log: Callable[[str], None] | None = None,
@@ -763,20 +793,9 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
     before_seeds = evaluate(planner, variants if before_variants is None else before_variants)
     buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share)
-    cap = TemplateCaptioner()
-    captions = [cap.caption(im, sc, variant=i).long for i, (im, sc) in enumerate(zip(buf.images, buf.scenes))]
-    imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
-                     for im in buf.images])
-    new_clip, losses = llu_update(planner.params["clip"], imgs, captions, llu, planner.cfg.clip)
-    base = list(train_captions) if train_captions is not None else list(planner.db.captions)
-    db = build_text_db(new_clip, base + captions, planner.cfg.clip)
-    if llu.view_entries:
-        db = add_view_entries(db, encode_all_images(new_clip, imgs, planner.cfg.clip),
-                              encode_all_texts(new_clip, captions, planner.cfg.clip), captions)
-    # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans
-    after_planner = OliviaNav(dict(planner.params, clip=new_clip,
-                                   clip_tpn=planner.params.get("clip_tpn", planner.params["clip"])),
-                              db, planner.cfg, planner.variant)
+    captions = caption_buffer(buf)
+    after_planner, losses = apply_llu(planner, buf, captions, llu, train_captions)
+    db = after_planner.db
     effect = llu_effect(planner, after_planner, buf, captions)
     log(f"LLU: |B| = {len(buf.images)}, eq 4 loss {losses[0]:.3f} -> {losses[-1]:.3f}; |D_T| {len(planner.db.captions)} "
         f"-> {len(db.captions)}; on the buffer's views the retrieved caption's action is right "
