@@ -17,7 +17,7 @@ __all__ = ["DEFAULTS", "JACOBIANS", "SOLVERS", "add_track_args", "flags_needing_
 #: TrackerConfig's defaults of the fields these options set (tests/test_f2f_prior.py checks them).
 DEFAULTS = dict(iters=40, solver="gn", gn_iters=10, gn_loss_tol=3e-3, coarse_iters=0, tol=1e-3, patience=0,
                 prior_weight=1e-3, prior_lateral_sigma=0.01, f2f_prior=True, f2f_rot_sigma=1e-3, downscale=1,
-                jacobian="finite-difference")
+                jacobian="analytic")
 #: slam.SOLVERS
 SOLVERS = ("adam", "gn")
 #: slam.JACOBIANS
