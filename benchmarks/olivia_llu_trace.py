@@ -233,7 +233,7 @@ def markdown(report: dict) -> str:
     mb = np.mean([b["mse"] for b in report["before"]])
     L.append("")
     L.append(f"mean MSE before {mb:.4f}" + (f", after {np.mean([a['mse'] for a in report['after']]):.4f}"
-                                           if "after" in report else ""))
+                                           if report.get("after") else ""))
     if "buffer" in report:
         acts: dict[str, int] = {}
         on_acts: dict[str, int] = {}
@@ -310,6 +310,14 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     report: dict = {"checkpoint": args.checkpoint, "overrides": overrides, "args": vars(args), "before": [], "traces": {}}
     raws: dict[int, list] = {}
+
+    def save() -> None:  # after every stage, so that a run cut short keeps what it measured
+        report["wall_s"] = time.time() - t0
+        with open(os.path.join(args.out, "trace.json"), "w") as f:
+            json.dump(report, f, indent=1, default=float)
+        with open(os.path.join(args.out, "trace.md"), "w") as f:
+            f.write(markdown(report))
+
     for s in (tseeds if args.skip_before else seeds):
         m, raw, dig = run_seed(planner, args.scenario, s, s in tseeds, args.walker_every, cache)
         report["before"].append(m)
@@ -317,6 +325,7 @@ def main(argv=None) -> int:
             raws[s] = raw
             report["traces"][str(s)] = {"before": dig}
         print(f"before seed {s}: mse {m['mse']:.4f} reached {m['reached']} ({time.time() - t0:.0f} s)", flush=True)
+        save()
     if not args.no_after:
         if args.buffer_cache and os.path.exists(args.buffer_cache):
             with open(args.buffer_cache, "rb") as f:
@@ -342,20 +351,19 @@ def main(argv=None) -> int:
                                     "caption": after.db.captions[j]}
                                    for j in range(len(after.db.captions)) if j >= n0 or is_view_entry(after.db, j)][:200],
                    "after": []}
+        save()
         for s in tseeds:
             if s in raws:
                 report["traces"][str(s)]["same_state"] = same_state_changes(raws[s], after, after.db)
+        save()
         for s in seeds:
             m, _, dig = run_seed(after, args.scenario, s, s in tseeds, args.walker_every, cache)
             report["after"].append(m)
             if s in tseeds:
                 report["traces"][str(s)]["after"] = dig
             print(f"after seed {s}: mse {m['mse']:.4f} reached {m['reached']} ({time.time() - t0:.0f} s)", flush=True)
-    report["wall_s"] = time.time() - t0
-    with open(os.path.join(args.out, "trace.json"), "w") as f:
-        json.dump(report, f, indent=1, default=float)
-    with open(os.path.join(args.out, "trace.md"), "w") as f:
-        f.write(markdown(report))
+            save()
+    save()
     print(markdown(report).split("\n## ")[0])
     return 0
 
