@@ -260,7 +260,9 @@ def test_gn_information_weighted_prior(tracking_map):
 
 def test_slam_leaves_weakly_fixed_frames_out_of_the_map(tracking_walk):
     frames, K, W, H = tracking_walk
-    tcfg = TrackerConfig(solver="gn", gn_iters=3, map_min_info=0.5, map_skip_max=1)
+    # forward differences: in 3 steps on this 96x72 walk the analytic metric (the default) ends 5.6 cm
+    # off against the bound's 5 cm (stop 44); the test is about leaving frames out of the map
+    tcfg = TrackerConfig(solver="gn", gn_iters=3, map_min_info=0.5, map_skip_max=1, jacobian="finite-difference")
     slam = SLAM(K, W, H, MapperConfig(iters=2, first_iters=40, stride=1, initial_capacity=8192), tcfg)
     slam.process(frames[0].rgb, frames[0].depth, frames[0].viewmat)
     n0 = slam.mapper.map.n_active
