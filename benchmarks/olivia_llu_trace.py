@@ -39,17 +39,10 @@ import numpy as np
 
 
 def parse_seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "-" in part:
-            a, b = part.split("-")
-            out.extend(range(int(a), int(b) + 1))
-        else:
-            out.append(int(part))
-    return out
+    """"300-302,309" -> [300, 301, 302, 309] (the social CLI's own seed parser)."""
+    from splatsearch.social.olivia.cli import _ints
+
+    return list(_ints(text))
 
 
 def door_of(scn) -> tuple[float, float, float] | None:
