@@ -70,13 +70,14 @@ def test_gate_rejects_a_disagreeing_estimate():
 
 
 def test_config_defaults_and_validation():
-    from splatsearch.tracking_args import DEFAULTS, SOLVERS
+    from splatsearch.tracking_args import DEFAULTS, JACOBIANS, SOLVERS
 
     cfg = slam.TrackerConfig()
     assert cfg.f2f_prior is True and cfg.f2f_rot_sigma == 1e-3
     # the CLI's help shows tracking_args.DEFAULTS without importing JAX: they must be TrackerConfig's
     assert {k: getattr(cfg, k) for k in DEFAULTS} == DEFAULTS
     assert SOLVERS == slam.SOLVERS
+    assert JACOBIANS == slam.JACOBIANS
     assert cfg.f2f_trans_sigma is None
     for bad in (0.0, -1e-3, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="f2f_rot_sigma"):
