@@ -461,8 +461,9 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     return run
 
 
-def pose_jacobian(gmap: GaussianMap, rgb, depth, viewmat, K, width: int, height: int, method: str = "analytic",
-                  config: TrackerConfig | None = None, basis=None, order: int = 2):
+def pose_jacobian(gmap: GaussianMap, rgb: np.ndarray, depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray,
+                  width: int, height: int, method: str = "analytic", config: TrackerConfig | None = None,
+                  basis: np.ndarray | None = None, order: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tracker's residuals at ``viewmat`` and their Jacobian w.r.t. the pose, as the
     Levenberg-Marquardt stage forms it (for tests and diagnostics; the tracker forms its own
     inside its jitted loop).

@@ -39,7 +39,8 @@ def _derivative(img, axis: int, order: int):
     return jnp.where(inner.reshape(shape), g4, g2)
 
 
-def analytic_jacobian(r, rgb, depth, K, basis, order: int = 2):
+def analytic_jacobian(r: jax.Array, rgb: jax.Array, depth: jax.Array, K: jax.Array, basis: jax.Array,
+                      order: int = 2) -> jax.Array:
     """(H, W, 4, k) Jacobian of the tracking residuals (rendered minus observed: depth m, then
     colour) w.r.t. the pose parameters p (the camera-frame increment xi = ``basis @ p``, xi =
     (rotation vector rad, translation m), applied as exp(xi) @ viewmat), from ONE render.
