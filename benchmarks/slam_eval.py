@@ -31,11 +31,17 @@ from splatsearch.slam import JACOBIANS, SOLVERS, TrackerConfig, parse_lateral_si
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
 #: Real-sensor mapping settings (see docs/mapping.md for how they were chosen).
+#: Stop 45: per-frame exposure on (the plain render drops 0.04 dB, the render with each frame's fitted
+#: exposure rises 0.4 dB) and 500 refinement steps (200: 23.24 dB with exposure applied, 400: 23.95,
+#: 500: 24.05, 800: 23.77; docs/results.md, "Stop 45, issue 24").
 REAL = dict(iters=30, first_iters=60, stride=2, pixel_scale=2.0, fill_holes=True, keyframe_every=1, lambda_g=0.3,
             lr={"means": 2e-4, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "colors": 1e-2},
-            initial_capacity=1 << 15)
-REAL_REFINE = 200
+            initial_capacity=1 << 15, exposure=True)
+REAL_REFINE = 500
 SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15)
+
+
+_SET: dict = {}  # --mapper-set overrides, recorded with every run
 
 
 def _load():
@@ -58,7 +64,7 @@ def _run(name: str, seq, job: MapJob, out: str) -> dict:
     load0 = _load()
     t0 = time.perf_counter()
     _, summary = map_sequence(seq, job, os.path.join(out, name))
-    rec = {"run": name, "load_start": load0, "load_end": _load(), "cpus": os.cpu_count(),
+    rec = {"run": name, "mapper_set": dict(_SET), "load_start": load0, "load_end": _load(), "cpus": os.cpu_count(),
            "seconds": time.perf_counter() - t0, **_brief(summary)}
     os.makedirs(out, exist_ok=True)
     with open(os.path.join(out, "results.jsonl"), "a") as f:
@@ -146,11 +152,19 @@ def main(argv=None) -> int:
     p.add_argument("--rgbd-odometry", action="store_true", help="start tracking from OpenCV RGB-D odometry")
     p.add_argument("--planar", action="store_true", help="track planar motions only (ground robot)")
     p.add_argument("--pose-refine", action="store_true", help="refine tracked keyframe poses with the map")
-    p.add_argument("--exposure", action="store_true", help="fit an affine colour per frame")
+    p.add_argument("--exposure", action=argparse.BooleanOptionalAction, default=None,
+                   help="fit an affine colour per frame (default: on for TUM, a real auto-exposed camera; off "
+                        "for the simulator)")
     p.add_argument("--runs", default=None, help="comma-separated subset of the runs (default: all)")
     p.add_argument("--iters", type=int, default=None, help="TUM mapping steps per frame (default 30)")
     p.add_argument("--first-iters", type=int, default=None, help="TUM mapping steps on the first frame (default 60)")
-    p.add_argument("--refine", type=int, default=None, help="TUM refinement steps at the end (default 200)")
+    p.add_argument("--refine", type=int, default=None, help="TUM refinement steps at the end (default 500)")
+    p.add_argument("--mapper-set", action="append", default=[], metavar="FIELD=JSON",
+                   help="set a MapperConfig field of the TUM and simulator settings, e.g. lambda_g=0.1 or "
+                        "depth_edge_rel=0.05 (repeatable; for screening, recorded in results.jsonl)")
+    p.add_argument("--data", default=TUM,
+                   help="the TUM frames for tum / speed (default: ../shared/data/tum_fr1_xyz_first10 beside the "
+                        "checkout; a worktree elsewhere names the shared folder here)")
     p.add_argument("--out", default="runs/slam_eval")
     a = p.parse_args(argv)
     if a.seed >= 1000 and not a.evaluation:
@@ -170,8 +184,20 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     for d in (REAL, SIM):
-        d.update(pose_refine=a.pose_refine, pose_planar=a.planar, exposure=a.exposure)
+        d.update(pose_refine=a.pose_refine, pose_planar=a.planar)
+        if a.exposure is not None:
+            d["exposure"] = a.exposure
     global REAL_REFINE
+    for item in a.mapper_set:
+        key, _, val = item.partition("=")
+        if key not in MapperConfig.__dataclass_fields__ or not val:
+            p.error(f"--mapper-set {item!r}: expected FIELD=JSON with a MapperConfig field")
+        try:
+            val = json.loads(val)
+        except json.JSONDecodeError:
+            p.error(f"--mapper-set {item!r}: the value is not JSON")
+        REAL[key] = SIM[key] = val
+        _SET[key] = val
     for key, val in (("iters", a.iters), ("first_iters", a.first_iters)):
         if val is not None:
             REAL[key] = val
@@ -180,10 +206,10 @@ def main(argv=None) -> int:
     want = None if a.runs is None else set(a.runs.split(","))
     go = lambda n: want is None or n in want  # noqa: E731
     if a.what in ("tum", "speed"):
-        if not os.path.isdir(TUM):
-            print(f"skipped: {TUM} not present", file=sys.stderr)
+        if not os.path.isdir(a.data):
+            print(f"skipped: {a.data} not present", file=sys.stderr)
             return 1
-        seq = datasets.load_sequence(TUM, downscale=a.downscale)
+        seq = datasets.load_sequence(a.data, downscale=a.downscale)
         if a.what == "speed":
             _run("tum_track_speed", seq, MapJob(MapperConfig(**REAL), tcfg, track=True, holdout_every=0), a.out)
             return 0

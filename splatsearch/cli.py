@@ -18,8 +18,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 from splatsearch.cli_types import positive_int
+
+if TYPE_CHECKING:  # the mapper imports JAX; the CLI imports it only for the sub-commands that map
+    from splatsearch.mapper import MapperConfig
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -92,6 +96,25 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def map_mapper_config(args: argparse.Namespace, real: bool) -> MapperConfig:
+    """The :class:`~splatsearch.mapper.MapperConfig` of ``splatsearch map`` from its flags, before
+    ``--mapper.FIELD`` overrides; ``real``: a dataset (``--data``), not a simulator walk."""
+    from splatsearch.mapper import MapperConfig
+
+    mcfg = MapperConfig(iters=args.iters, stride=args.stride, isotropic=args.isotropic,
+                        pixel_scale=args.pixel_scale if args.pixel_scale else float(args.stride if real else 1),
+                        first_iters=args.first_iters, min_depth=args.depth_range[0], max_depth=args.depth_range[1],
+                        fill_holes=real and not args.no_fill_holes, keyframe_every=args.keyframe_every,
+                        initial_capacity=1 << 15 if real else 16384)
+    if real:  # sensor depth is noisy: weigh it less and keep means steadier (docs/mapping.md)
+        mcfg.lambda_g = 0.3
+        mcfg.lr = dict(mcfg.lr, means=2e-4, colors=1e-2)
+    # real cameras auto-expose (TUM's brightness drifts ~5 % over 10 frames): fit it unless told not to
+    exposure = real if args.exposure is None else args.exposure
+    mcfg.pose_refine, mcfg.pose_planar, mcfg.exposure = args.pose_refine, args.track_planar, exposure
+    return mcfg
+
+
 def _cmd_map(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import (
@@ -104,7 +127,6 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
     from splatsearch import datasets
     from splatsearch.map_job import MapJob, map_sequence
-    from splatsearch.mapper import MapperConfig
     from splatsearch.tracking_args import flags_needing_track, tracker_config
 
     console = Console()
@@ -127,15 +149,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
     if args.odometry and data:
         raise ValueError("--odometry is for simulator walks; datasets carry no odometry")
     real = data is not None
-    mcfg = MapperConfig(iters=args.iters, stride=args.stride, isotropic=args.isotropic,
-                        pixel_scale=args.pixel_scale if args.pixel_scale else float(args.stride if real else 1),
-                        first_iters=args.first_iters, min_depth=args.depth_range[0], max_depth=args.depth_range[1],
-                        fill_holes=real and not args.no_fill_holes, keyframe_every=args.keyframe_every,
-                        initial_capacity=1 << 15 if real else 16384)
-    if real:  # sensor depth is noisy: weigh it less and keep means steadier (docs/mapping.md)
-        mcfg.lambda_g = 0.3
-        mcfg.lr = dict(mcfg.lr, means=2e-4, colors=1e-2)
-    mcfg.pose_refine, mcfg.pose_planar, mcfg.exposure = args.pose_refine, args.track_planar, args.exposure
+    mcfg = map_mapper_config(args, real)
     from splatsearch.cli_config import apply_overrides, config_overrides
 
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
@@ -447,9 +461,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.add_argument("--pose-refine", action="store_true",
                    help="with --track: refine the tracked keyframe poses jointly with the map during mapping "
                         "(a local bundle adjustment through the renderer; default: off)")
-    m.add_argument("--exposure", action="store_true",
+    m.add_argument("--exposure", action=argparse.BooleanOptionalAction, default=None,
                    help="fit an affine colour (gain, bias) per frame, for cameras with auto-exposure; "
-                        "summary.json adds the keyframes' PSNR with it applied (default: off)")
+                        "summary.json adds the keyframes' PSNR with it applied (default: on for --data, "
+                        "off for the simulator)")
     m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel (default 3)")
     m.add_argument("--pixel-scale", type=float, default=None,
                    help="size of new Gaussians in pixels (default: --stride for datasets, 1 for the simulator)")

@@ -73,6 +73,10 @@ class MapperConfig:
     ``b``) per frame, applied to the render in the loss (step size ``exposure_lr``): auto-exposure
     of real cameras then no longer bends the map's colours. The first frame's exposure is fixed
     (it sets the colour scale).
+
+    ``refine_lr_final``: :meth:`Mapper.refine` scales every Adam step (the map's and the frames'
+    parameters) from 1 down to this fraction, exponentially over its iterations (1: constant), so
+    a long refinement settles instead of wandering at a constant step size.
     """
 
     iters: int = 15
@@ -108,6 +112,7 @@ class MapperConfig:
     pose_planar: bool = False
     exposure: bool = False
     exposure_lr: float = 2e-3
+    refine_lr_final: float = 1.0
 
     def validate(self) -> None:
         if self.window_select not in ("overlap", "recent"):
@@ -120,6 +125,8 @@ class MapperConfig:
             raise ValueError("pixel_scale > 0, 0 <= min_depth < max_depth and depth_edge_rel >= 0 are required")
         if not (self.pose_lr_rot > 0 and self.pose_lr_trans > 0 and self.exposure_lr > 0):
             raise ValueError("pose_lr_rot, pose_lr_trans and exposure_lr must be > 0")
+        if not 0 < self.refine_lr_final <= 1:
+            raise ValueError(f"refine_lr_final must be in (0, 1], got {self.refine_lr_final}")
         if self.iters < 0 or self.window < 1 or self.keyframe_every < 1 or self.stride < 1:
             raise ValueError("iters >= 0, window >= 1, keyframe_every >= 1 and stride >= 1 are required")
         missing = {"means", "log_scales", "quats", "opacity_logits", "colors"} - set(self.lr)
@@ -268,12 +275,15 @@ class Mapper:
         if not self.keyframes or iters == 0:
             return self.last_loss
         dev = [self._device_frame(f) for f in self.keyframes]
-        self._optimise(dev, [int(i) for i in self.rng.integers(0, len(dev), iters)], self.keyframes)
+        scales = np.exp(np.linspace(0.0, np.log(self.cfg.refine_lr_final), iters)) \
+            if self.cfg.refine_lr_final < 1 else None
+        self._optimise(dev, [int(i) for i in self.rng.integers(0, len(dev), iters)], self.keyframes, scales)
         return self.last_loss
 
-    def _optimise(self, dev: list, picks: list[int], frames: list[Frame]) -> None:
+    def _optimise(self, dev: list, picks: list[int], frames: list[Frame], scales: np.ndarray | None = None) -> None:
         """Adam steps on the frames ``dev[i] for i in picks`` (``frames[i]`` their Frame: pose,
-        per-frame parameters).
+        per-frame parameters); ``scales`` (len(picks),): each step's size as a fraction of the
+        configured learning rates (None: 1).
 
         With ``submap`` the steps run on the Gaussians that the frames can see (means inside
         one of the views, grown by ``submap_margin`` of the image), gathered into a
@@ -290,16 +300,18 @@ class Mapper:
         else:
             params, active, opt_state, cap = _gather_rows(self.map, self.opt_state, rows)
         cfg = self.cfg
-        for i in picks:
+        for n, i in enumerate(picks):
             r, s, d = dev[i]
             f = frames[i]
             mask = self._fp_mask(f)
+            sc = 1.0 if scales is None else float(scales[n])
             if mask is None:
-                params, opt_state, loss = self._step(params, active, opt_state, r, s, d, jnp.asarray(f.viewmat))
+                params, opt_state, loss = self._step(params, active, opt_state, r, s, d, jnp.asarray(f.viewmat),
+                                                     jnp.float32(sc))
                 continue
             params, opt_state, loss, g = self._step_fp(params, active, opt_state, jnp.asarray(f.fp), r, s, d,
-                                                       jnp.asarray(f.viewmat))
-            _fp_adam(f, np.asarray(g) * mask, self._fp_lrs)
+                                                       jnp.asarray(f.viewmat), jnp.float32(sc))
+            _fp_adam(f, np.asarray(g) * mask, self._fp_lrs * sc)
         for f in frames:  # fold the pose increments into the poses (the Adam moments stay)
             if np.any(f.fp[:6]):
                 f.viewmat = np.asarray(_pose_apply(jnp.asarray(f.viewmat), jnp.asarray(f.fp[:6])), np.float32)
@@ -442,9 +454,11 @@ def _optimiser_and_step(cfg: MapperConfig, K: np.ndarray, W: int, H: int):
 
     @jax.jit
     @full_precision
-    def step(params, active, opt_state, rgb, stats, depth, viewmat):
+    def step(params, active, opt_state, rgb, stats, depth, viewmat, scale):
+        """One Adam step with its size scaled by ``scale`` (a traced scalar: no recompile per value)."""
         loss, grads = jax.value_and_grad(loss_fn)(params, active, rgb, stats, depth, viewmat)
         updates, opt_state = tx.update(grads, opt_state, params)
+        updates = jax.tree_util.tree_map(lambda u: u * scale, updates)
         return optax.apply_updates(params, updates), opt_state, loss
 
     planar = cfg.pose_planar
@@ -458,11 +472,12 @@ def _optimiser_and_step(cfg: MapperConfig, K: np.ndarray, W: int, H: int):
 
     @jax.jit
     @full_precision
-    def step_fp(params, active, opt_state, fp, rgb, stats, depth, viewmat):
+    def step_fp(params, active, opt_state, fp, rgb, stats, depth, viewmat, scale):
         """The step of ``step`` that also returns the gradient of the frame's parameters fp (8,)."""
         loss, (grads, g_fp) = jax.value_and_grad(loss_fp, argnums=(0, 1))(params, fp, active, rgb, stats, depth,
                                                                             viewmat)
         updates, opt_state = tx.update(grads, opt_state, params)
+        updates = jax.tree_util.tree_map(lambda u: u * scale, updates)
         return optax.apply_updates(params, updates), opt_state, loss, jnp.where(jnp.isfinite(g_fp), g_fp, 0.0)
 
     if len(_STEPS) > 16:  # many cameras in one process: keep the cache bounded

@@ -354,6 +354,20 @@ _TRACK_FNS: dict = {}
 _TRACK_DIFF = "viewmat"
 
 
+def trusted_pixels(alpha: jax.Array, d_err: jax.Array, depth: jax.Array, sil_thresh: float,
+                   outlier_k: float) -> jax.Array:
+    """The pixels tracking trusts, (H, W) float32 in {0, 1}: rendered silhouette ``alpha`` (H, W)
+    above ``sil_thresh``, valid observed ``depth`` (H, W, m), and (``outlier_k`` > 0) a depth error
+    ``d_err`` = |rendered - observed| (H, W, m) at most ``outlier_k`` x its median over the covered
+    pixels (depth edges, things that moved). The one definition for the tracker's stages and
+    :func:`pose_jacobian`, so the diagnostics see the tracker's pixels."""
+    m = (alpha > sil_thresh) & (depth > 0)
+    if outlier_k > 0:
+        med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
+        m = m & (d_err <= outlier_k * jnp.where(jnp.isfinite(med), med, jnp.inf))
+    return m.astype(jnp.float32)
+
+
 def _track_fn(levels: tuple, cfg: TrackerConfig):
     """Jitted tracker over ``levels``: ((K bytes, W, H, max steps, lr scale), ...), coarse first."""
     key = (levels, cfg.lr_rot, cfg.lr_trans, cfg.sil_thresh, cfg.w_color, cfg.outlier_k, cfg.planar, cfg.lr_final,
@@ -379,12 +393,7 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
             """The trusted pixels (H, W) float at the increment xi: covered, valid depth, no outlier
             (``out``: the render at xi when already made)."""
             out = render(xi, margs, vm_ref) if out is None else out
-            d_err = jnp.abs(out.depth[..., 0] - depth)
-            m = (out.alpha[..., 0] > sil) & (depth > 0)
-            if ok_k > 0:
-                med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
-                m = m & (d_err <= ok_k * jnp.where(jnp.isfinite(med), med, jnp.inf))
-            return m.astype(jnp.float32)
+            return trusted_pixels(out.alpha[..., 0], jnp.abs(out.depth[..., 0] - depth), depth, sil, ok_k)
 
         def loss(p, margs, rgb, depth, vm_ref, basis, mf, pw):
             xi = basis @ p
@@ -499,11 +508,7 @@ def pose_jacobian(gmap: GaussianMap, rgb: np.ndarray, depth: np.ndarray, viewmat
 
     k = basis.shape[1]
     r, alpha = residual(jnp.zeros(k, jnp.float32))
-    d_err = jnp.abs(r[..., 0])
-    m = (alpha > cfg.sil_thresh) & (depth > 0)
-    if cfg.outlier_k > 0:
-        med = jnp.nanmedian(jnp.where(m, d_err, jnp.nan))
-        m = m & (d_err <= cfg.outlier_k * jnp.where(jnp.isfinite(med), med, jnp.inf))
+    m = trusted_pixels(alpha, jnp.abs(r[..., 0]), depth, cfg.sil_thresh, cfg.outlier_k)
     h = cfg.gn_fd_step
     if method == "analytic":
         J = jax.jit(full_precision(analytic_jacobian), static_argnums=5)(r, rgb, depth, Kj, basis, order)
