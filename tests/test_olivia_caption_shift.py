@@ -18,7 +18,7 @@ from splatsearch.social.convoi import pedsim
 from splatsearch.social.convoi.human import HumanWalkerConfig, WalkerCarry, make_walker_world, run_walker, walker_rollout, walker_step
 from splatsearch.social.convoi.scenarios import ROBOT_RADIUS, _box, _scn
 from splatsearch.social.olivia import train as ot
-from splatsearch.social.olivia.features import IMG_H, IMG_W
+from splatsearch.social.olivia.render import IMG_H, IMG_W
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
 
