@@ -3,7 +3,9 @@
     python benchmarks/olivia_caption_vs_reference.py --seeds 300-309 --times 1-8 --out runs/capref.json
 
 The LLU labels a view with ``features.expert_action``: the reference walker's rollout forked from
-the robot's state (``human.walker_rollout``, which starts with no lateral shift chosen). Tables I-II
+the robot's state (``human.walker_rollout``; since stop 45 with the lateral shift the reference
+episode holds at that step, ``--shift carried``, the default; ``--shift fresh``: with none, the
+captioner before, which undid the reference's head-on sidestep at 2-3 s). Tables I-II
 score a planner against the reference's whole episode, in which the walker keeps the shift it
 chose earlier (hysteresis, ``w_change``). For each seed, at each of ``--times`` (s) along the
 reference episode, this prints the caption's action from the reference's own state and the action
@@ -32,8 +34,9 @@ def agreement(rows: list[dict]) -> dict:
             "per_reference_action": {k: {"n": len(v), "agree": sum(v) / len(v)} for k, v in sorted(per.items())}}
 
 
-def along_reference(scenario: str, seed: int, steps: list[int], cache=None) -> list[dict]:
-    """Caption action vs the reference's own action at the reference episode's ``steps``."""
+def along_reference(scenario: str, seed: int, steps: list[int], cache=None, carry_shift: bool = True) -> list[dict]:
+    """Caption action vs the reference's own action at the reference episode's ``steps``
+    (``carry_shift``: the captioner's walker holds the reference's shift there, else none)."""
     import jax
     import jax.numpy as jnp
 
@@ -56,13 +59,14 @@ def along_reference(scenario: str, seed: int, steps: list[int], cache=None) -> l
     last = min(max(steps, default=0), len(ref.cmds) - 1)
     for t in range(last + 1):
         if t in steps and t >= 1:
-            cap = expert_action(scn, ref.robot[t], ref.cmds[t - 1], peds, t)
+            off = float(ref.shifts[t]) if carry_shift and ref.shifts is not None else None
+            cap = expert_action(scn, ref.robot[t], ref.cmds[t - 1], peds, t, offset=off)
             own = action_of(future_in_frame(poses, t, np.asarray(ref.robot[t], np.float64)))
             p = np.asarray(peds.pos)[0]
             out.append({"seed": seed, "t": t, "time_s": round(t * scn.dt, 2),
                         "robot": [round(float(v), 3) for v in ref.robot[t][:2]],
                         "person0": [round(float(v), 3) for v in p], "drift_check": float(np.abs(p - ref.people[t][0]).max()),
-                        "caption": ACTIONS[cap], "reference": ACTIONS[own]})
+                        "shift": None if off is None else round(off, 3), "caption": ACTIONS[cap], "reference": ACTIONS[own]})
         # replay the people along the reference's moves (they react to the robot as they did)
         pose = ref.robot[t + 1]
         rv = float(ref.cmds[t][0]) * np.array([np.cos(pose[2]), np.sin(pose[2])], np.float32)
@@ -75,6 +79,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", default="doorway")
     ap.add_argument("--seeds", default="300-309")
     ap.add_argument("--times", default="1-8", help="whole seconds along the reference episode (default 1-8)")
+    ap.add_argument("--shift", choices=("carried", "fresh"), default="carried",
+                    help="the captioner's walker holds the reference's shift at that step (carried, the LLU's "
+                         "captioner since stop 45) or none (fresh, the one before) (default carried)")
     ap.add_argument("--baseline-cache", default=None)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -87,7 +94,7 @@ def main(argv=None) -> int:
     rows: list[dict] = []
     t0 = time.time()
     for seed in parse_seeds(args.seeds):
-        r = along_reference(args.scenario, seed, steps, cache)
+        r = along_reference(args.scenario, seed, steps, cache, carry_shift=args.shift == "carried")
         rows += r
         print(seed, " | ".join(f"{x['time_s']:.0f}s {x['caption']}/{x['reference']}" for x in r),
               f"({time.time() - t0:.0f} s)", flush=True)

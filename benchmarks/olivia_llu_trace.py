@@ -280,6 +280,8 @@ def main(argv=None) -> int:
                     help="override an OliviaConfig field (float / bool), e.g. --set safety=20")
     ap.add_argument("--no-after", action="store_true", help="stop after the before-episodes")
     ap.add_argument("--skip-before", action="store_true", help="run the before-episodes on the trace seeds only")
+    ap.add_argument("--fresh-shift", action="store_true", help="caption with a walker forked with no lateral shift "
+                    "(the captioner before stop 45) instead of the reference episode's shift at that step")
     ap.add_argument("--baseline-cache", default=None)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -329,7 +331,7 @@ def main(argv=None) -> int:
             captions, used = d["captions"], d["used"]
         else:
             buf, used = fill_buffer(planner, args.scenario, parse_seeds(args.adapt_seeds), args.size, args.buffer_every,
-                                    args.oncoming_share)
+                                    args.oncoming_share, cache, carry_shift=not args.fresh_shift)
             captions = caption_buffer(buf)
             if args.buffer_cache:
                 with open(args.buffer_cache, "wb") as f:

@@ -46,7 +46,7 @@ def test_select_views_keeps_the_share_of_oncoming_views_spread():
 def test_fill_buffer_drives_every_seed_and_keeps_head_on_views(monkeypatch):
     driven, made = [], []
 
-    def fake_episode(scn, planner, *, buffer, buffer_every):
+    def fake_episode(scn, planner, *, buffer, buffer_every, **kw):
         driven.append(scn.seed)
         for t in range(30):
             head_on = int(scn.seed == 505 and 10 <= t < 14)

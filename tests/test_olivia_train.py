@@ -250,7 +250,7 @@ def test_cli_defaults_match_train_config():
 def test_fill_buffer_drives_episodes_until_full(monkeypatch):
     driven = []
 
-    def fake_episode(scn, planner, *, buffer, buffer_every):
+    def fake_episode(scn, planner, *, buffer, buffer_every, **kw):
         driven.append(scn.seed)
         for _ in range(22):  # a short episode stores fewer views than |B|
             buffer.add(np.zeros((IMG_H, IMG_W, 3), np.float32))

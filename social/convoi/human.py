@@ -321,6 +321,7 @@ def run_walker(scn: Scenario, *, max_steps: int | None = None, cfg: HumanWalkerC
                         jnp.asarray(0.0, F32))
     n = scn.max_steps if max_steps is None else int(max_steps)
     poses, people, cmds, contacts = [np.asarray(scn.start, np.float32)], [np.asarray(scn.peds.pos)], [], []
+    shifts = [0.0]
     wall_hits = 0
     reached = False
     t0 = time.perf_counter()
@@ -332,6 +333,7 @@ def run_walker(scn: Scenario, *, max_steps: int | None = None, cfg: HumanWalkerC
         poses.append(pose)
         people.append(np.asarray(carry.peds.pos))
         cmds.append(np.asarray(cmd))
+        shifts.append(float(carry.offset))
         contacts.append(int(np.asarray(contact).sum()))
         wall_hits += bool(hit)
         if np.linalg.norm(pose[:2] - scn.goal) < GOAL_TOLERANCE:
@@ -343,20 +345,25 @@ def run_walker(scn: Scenario, *, max_steps: int | None = None, cfg: HumanWalkerC
                          np.asarray(people), np.asarray(scn.peds.active), np.ones((T, P), bool),
                          np.arange(T + 1) * scn.dt, np.asarray(scn.goal), np.asarray(scn.start), reached, 0,
                          np.asarray(contacts), wall_hits, 0, 1e3 * (time.perf_counter() - t0) / max(T - 1, 1), {},
-                         scn.dt)
+                         scn.dt, np.asarray(shifts, np.float32))
 
 
 def walker_rollout(scn: Scenario, pose, vel, peds: pedsim.PedState, t_index: int, n_steps: int,
-                   cfg: HumanWalkerConfig = HumanWalkerConfig()) -> np.ndarray:
+                   cfg: HumanWalkerConfig = HumanWalkerConfig(), offset: float = 0.0) -> np.ndarray:
     """The walker's poses (k + 1, 3), k <= n_steps, forked from an arbitrary state (pose (3,),
-    vel (2,) = (v, ω), the people, the scenario step): what the reference would do from there."""
+    vel (2,) = (v, ω), the people, the scenario step): what the reference would do from there.
+
+    ``offset`` (m, + = left): the lateral shift the walker holds when forked (its hysteresis,
+    ``w_change``, is measured from it). 0 is a walker that has not chosen a side; the reference
+    episode's own shift at that step (:attr:`EpisodeResult.shifts`) forks the walker that made
+    the reference's choices, which keeps a sidestep it already began."""
     from .runner import GOAL_TOLERANCE
 
     sf = pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     world = make_walker_world(scn, cfg)
     seed_key = jax.random.PRNGKey(scn.seed)
     carry = WalkerCarry(jnp.asarray(pose, F32), jnp.asarray(vel, F32), peds, jnp.asarray(int(t_index), jnp.int32),
-                        jnp.asarray(0.0, F32))
+                        jnp.asarray(float(offset), F32))
     out = [np.asarray(pose, np.float32)]
     for _ in range(int(n_steps)):
         carry, *_ = walker_step(carry, world, seed_key, cfg, sf)

@@ -217,7 +217,9 @@ class EpisodeResult:
     DWA found nothing feasible; robot_contacts: (T,) number of people overlapping the robot;
     wall_hits: refused moves into walls; plan_ms: mean wall-clock per control step (the first,
     compiling, step left out);
-    convoi: CoNVOI statistics (queries, extrapolations, failures, reference paths), if any.
+    convoi: CoNVOI statistics (queries, extrapolations, failures, reference paths), if any;
+    shifts: (T+1,) the human walker's carried lateral shift (m, + = left) at each pose, the
+    ``prev_offset`` its next step is planned with (``None`` for the other planners).
     """
 
     scenario: str
@@ -239,6 +241,7 @@ class EpisodeResult:
     plan_ms: float
     convoi: dict = field(default_factory=dict)
     dt: float = 0.1
+    shifts: np.ndarray | None = None
 
 
 def run_episode(scn: Scenario, kind: str, *, convoi=None, observer=None, max_steps: int | None = None,

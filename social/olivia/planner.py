@@ -233,7 +233,8 @@ def route_ahead(path: np.ndarray, xy: np.ndarray, n: int, step: float = 0.24) ->
 
 def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | None = None,
                        buffer: LLUBuffer | None = None, buffer_every: int = 5,
-                       sf: pedsim.SocialForceConfig | None = None, trace: list | None = None) -> EpisodeResult:
+                       sf: pedsim.SocialForceConfig | None = None, trace: list | None = None,
+                       reference_shift=None) -> EpisodeResult:
     """Drive OLiVia-Nav through ``scn`` (same loop as :func:`splatsearch.social.convoi.runner.run_episode`:
     move the robot, refusing moves into walls, then step the people, who see it). With
     ``buffer``, every ``buffer_every``-th view is stored for the LLU with its privileged scene,
@@ -246,7 +247,9 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     state needs: the observation ``obs``, the people seen (``seen_people``, ``seen_vel``), the
     followed plan ``prev_world`` made ``elapsed`` s ago, the map ``clearance``, and the
     simulator's people ``peds`` and the robot's last command ``cmd`` (for a reference rollout
-    from that state)."""
+    from that state). ``reference_shift``: optional callable step -> the lateral shift (m) the
+    reference walker's own episode holds at that step; the captioner's walker is forked with
+    it (see :func:`~splatsearch.social.olivia.features.expert_action`), else with none."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()
@@ -313,7 +316,10 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 # encoders the planner's own mistakes
                 def scene(pose=pose, cmd=cmds[-1] if cmds else np.zeros(2, np.float32), peds=peds, t=t,
                           people_now=people[-1]):
-                    act = expert_action(scn, pose, cmd, peds, t, expert_world)
+                    # a walker forked with no side chosen can undo the reference's sidestep at the
+                    # moment it begins (its change cost flips it): fork the one that chose it
+                    off = reference_shift(t) if reference_shift is not None else None
+                    act = expert_action(scn, pose, cmd, peds, t, expert_world, offset=off)
                     return caption_scene(scn, pose, people_now, np.asarray(peds.vel), act)
 
                 seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))

@@ -642,8 +642,29 @@ def table_one(planner: OliviaNav, scenarios: Sequence[str] = THESIS_SCENARIOS, s
     return rows
 
 
+def reference_shift_of(scn, cache: "BaselineCache | None" = None) -> Callable[[int], float]:
+    """Step -> the lateral shift (m) the reference walker holds at that step of its own episode
+    on ``scn`` (:attr:`EpisodeResult.shifts`, the last one past its end). The episode is run (or
+    read from ``cache``) on the first call only: a lazy buffer captions a few views per seed.
+    With the DWA-with-critics reference (no shift) it is always 0."""
+    from ..convoi.runner import REFERENCE
+
+    held: list = []
+
+    def shift(t: int) -> float:
+        if REFERENCE != "human":
+            return 0.0
+        if not held:
+            held.append(run_baseline(scn, REFERENCE, cache).shifts)
+        s = held[0]
+        return 0.0 if s is None or len(s) == 0 else float(s[min(int(t), len(s) - 1)])
+
+    return shift
+
+
 def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], size: int,
-                buffer_every: int = 2, oncoming_share: float = 0.0) -> tuple[LLUBuffer, list[int]]:
+                buffer_every: int = 2, oncoming_share: float = 0.0, cache: "BaselineCache | None" = None,
+                carry_shift: bool = True) -> tuple[LLUBuffer, list[int]]:
     """The LLU buffer B of |B| = ``size`` images from OLiVia-Nav driving the adaptation episodes
     of ``scenario`` (every ``buffer_every``-th plan offers its view). Returns B and the seeds
     driven. Raises RuntimeError when the episodes end before B is full: the update is defined on
@@ -655,7 +676,11 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
     the rest spread evenly over the other views of all episodes. The first views of a few
     doorway episodes show a person coming diagonally through the door, and head-on meetings
     (where the reference steps aside) are rarer; a buffer without them cannot teach them.
-    Only the kept views are captioned."""
+    Only the kept views are captioned.
+
+    ``carry_shift``: the captioner's walker is forked with the lateral shift the reference's own
+    episode holds at that step (:func:`reference_shift_of`, episodes through ``cache``); False:
+    with none (before stop 45: it undid the reference's head-on sidestep at 2-3 s)."""
     if not 0.0 <= oncoming_share <= 1.0:
         raise ValueError(f"oncoming_share must be in [0, 1], got {oncoming_share}")
     used: list[int] = []
@@ -664,12 +689,16 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
         for seed in adapt_seeds:
             if buf.full:
                 break
-            run_olivia_episode(make_scenario(scenario, seed), planner, buffer=buf, buffer_every=buffer_every)
+            scn = make_scenario(scenario, seed)
+            run_olivia_episode(scn, planner, buffer=buf, buffer_every=buffer_every,
+                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None)
             used.append(int(seed))
     else:
         pool = LLUBuffer(10 ** 9, lazy=True)
         for seed in adapt_seeds:
-            run_olivia_episode(make_scenario(scenario, seed), planner, buffer=pool, buffer_every=buffer_every)
+            scn = make_scenario(scenario, seed)
+            run_olivia_episode(scn, planner, buffer=pool, buffer_every=buffer_every,
+                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None)
             used.append(int(seed))
         if len(pool.images) >= size:
             buf = pool.select(select_views(np.asarray(pool.oncoming), size, oncoming_share), size)
@@ -792,7 +821,7 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
     before_seeds = evaluate(planner, variants if before_variants is None else before_variants)
-    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share)
+    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share, cache)
     captions = caption_buffer(buf)
     after_planner, losses = apply_llu(planner, buf, captions, llu, train_captions)
     db = after_planner.db
