@@ -282,3 +282,41 @@ def test_confirm_trip_keeps_a_match_the_new_frame_confirms_and_is_off_by_default
     assert agent0.policy.decide(facing, 1, capture=capture)[1] != "confirm"
     with pytest.raises(ValueError, match="confirm_below"):
         AgentConfig(confirm_below=12.0)
+
+
+def test_rival_check_looks_at_ambiguous_entries_before_a_marginal_match_stands(episode):
+    ep, env = episode
+    agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0, confirm_by="rivals", look_again=1,
+                                           look_again_after_refute=True)
+    policy, db = agent.policy, agent.db
+    amb = db.add(ep.goal_class, [c[0] - 3.0, c[1], 0.5], c,
+                 bbox=(np.array([c[0] - 3.2, c[1] - 0.2, 0.0]), np.array([c[0] - 2.8, c[1] + 0.2, 0.9]))).entry_id
+    db.record_match(amb, 12.0, 0, agent.cfg.tau_m)
+    gains = {amb: 12.0}
+
+    def capture(eid):
+        assert eid == amb  # never a trip to the marginal match itself
+        db.record_match(eid, gains[eid], 0, agent.cfg.tau_m)
+
+    # the marginal match (16) is the goal candidate, but the ambiguous rival gets its look first
+    assert policy.decide(c, 1, capture=capture) == ("move_forward", "look_again")
+    assert policy.target_entry == amb and policy.look_log == []
+    planner.status = "reached"
+    west = np.array([c[0], c[1], np.pi])
+    # the rival stays at 12: no rival left, the match stands and the robot goes to it
+    action, status = policy.decide(west, 2, capture=capture)
+    assert [x["kind"] for x in policy.look_log] == ["rival"] and policy.look_log[-1]["outcome"] == "captured"
+    assert e in policy.confirmed and status in ("goal_reached", "to_goal") and policy.target_entry == e
+    assert policy.decide(west, 3, capture=capture)[1] != "look_again"
+    # the same again, but the rival's other side lifts it to 30: it overtakes the marginal match
+    agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0, confirm_by="rivals", look_again=1)
+    policy, db = agent.policy, agent.db
+    amb = db.add(ep.goal_class, [c[0] - 3.0, c[1], 0.5], c,
+                 bbox=(np.array([c[0] - 3.2, c[1] - 0.2, 0.0]), np.array([c[0] - 2.8, c[1] + 0.2, 0.9]))).entry_id
+    db.record_match(amb, 12.0, 0, agent.cfg.tau_m)
+    gains[amb] = 30.0
+    planner.status = "reached"
+    action, status = policy.decide(west, 1, capture=capture)
+    assert policy.goal_candidates()[0].id == amb and policy.target_entry == amb and status == "goal_reached"
+    with pytest.raises(ValueError, match="confirm_by"):
+        AgentConfig(confirm_by="vote")

@@ -23,6 +23,9 @@ With ``confirm_below`` > tau_m (opt-in), an entry taken for the goal by a margin
 before the robot walks to it; the count of the frame taken there (not the running maximum) must
 reach tau_m again, or the entry is refuted (``refuted``): a look-alike that passed by a little
 cannot end the episode, and e_max, which keeps every run's best, could never take that back.
+With ``confirm_by`` "rivals" there is no trip to the marginal match itself: while it is the best
+goal candidate, the ambiguous entries get their look-again trips (kind "rival") first, and it
+stands once none is left.
 
 A goal that gets no closer for ``goal_patience`` reachable steps, or that no path reaches once
 the house is explored, is given up and the next candidate taken. The explorer is asked once per
@@ -46,6 +49,8 @@ from .verification import Verifier
 LOOK_AGAIN_RADIUS = 0.25
 #: the robot faces the object when its bearing is within this (degrees): a 30-degree turn lattice
 LOOK_AGAIN_FACING_DEG = 15.0
+#: the step status of each kind of trip
+_STATUS = {"look": "look_again", "rival": "look_again", "confirm": "confirm"}
 
 #: hysteresis of the end-of-exploration fallback: another entry replaces the current one only
 #: when its colour similarity is higher by more than this, or when it is about as similar and has
@@ -69,8 +74,8 @@ class SearchPolicy:
     State: ``explored`` (the explorer found no frontier left), ``given_up`` (entry ids not to be
     chosen again), for display ``target_entry``, ``path_xy`` (P, 2) metres and
     ``last_decision`` (the explorer's latest frontier decision), and for the look-again step
-    ``looks`` (entry id -> views begun) and ``look_log`` (one dict per trip: kind "look" or
-    "confirm", entry, start and end step, outcome, the viewpoint and path metres, e_max before and
+    ``looks`` (entry id -> views begun) and ``look_log`` (one dict per trip: kind "look",
+    "rival" or "confirm", entry, start and end step, outcome, the viewpoint and path metres, e_max before and
     after, and the captured frame's own count ``count_new``), ``confirmed`` (entry ids whose
     marginal match a confirm trip settled or could not check) and ``refuted`` (entry id -> the
     captured frame's count, below tau_m).
@@ -207,18 +212,18 @@ class SearchPolicy:
                                 max_path=self.cfg.look_again_max_path)
 
     def _begin(self, kind: str, cands: list[ObjectEntry], pose: np.ndarray, step: int) -> dict | None:
-        """Begin a trip of ``kind`` ("look" or "confirm") to the first of ``cands`` that has a
+        """Begin a trip of ``kind`` ("look", "rival" or "confirm") to the first of ``cands`` that has a
         viewpoint; the others without one are logged (and, for "look", get no more trips; for
         "confirm", their match stands)."""
         if not cands:
             return None
         D = self.explorer.planner().distance_from(pose[:2])
         for e in cands:
-            if kind == "look":
+            if kind != "confirm":
                 self.looks[e.id] = self.looks.get(e.id, 0) + 1
             v = self._viewpoint(e, D)
             if v is None:
-                if kind == "look":
+                if kind != "confirm":
                     self.looks[e.id] = self.cfg.look_again  # nowhere to look from: no more trips for it
                 else:
                     self.confirmed.add(e.id)
@@ -232,19 +237,32 @@ class SearchPolicy:
         return None
 
     def _start_look(self, pose: np.ndarray, step: int) -> dict | None:
-        """Begin a confirm trip to the most likely goal candidate whose marginal match is unsettled;
-        else, while nothing is taken for the goal (and, with ``look_again_after_refute``, once a
+        """Begin a confirm trip to the most likely goal candidate when its marginal match is unsettled
+        (with ``confirm_by`` "rivals": a look-again trip to an ambiguous entry instead, or, with
+        none left, let the match stand); else, while nothing is taken for the goal (and, with ``look_again_after_refute``, once a
         match was refuted), a look-again trip to the most matched ambiguous entry that has views
         left and a viewpoint."""
         cfg = self.cfg
-        lk = self._begin("confirm", [e for e in self.goal_candidates() if self.needs_confirm(e)], pose, step)
-        if lk is not None or self.goal_candidates():
-            return lk
+        gc = self.goal_candidates()
+        if gc and self.needs_confirm(gc[0]):
+            if cfg.confirm_by == "rivals":
+                # the ambiguous entries that could overtake the marginal match get their look first
+                lk = self._begin("rival", self._ambiguous_left(), pose, step) if cfg.look_again > 0 else None
+                if lk is None:
+                    self.confirmed.add(gc[0].id)  # no rival left to look at: the match stands
+                return lk
+            return self._begin("confirm", gc[:1], pose, step)
+        if gc:
+            return None
         if cfg.look_again <= 0 or (cfg.look_again_after_refute and not self.refuted):
             return None
-        cands = [e for e in self.db if e.id not in self.given_up and self.looks.get(e.id, 0) < cfg.look_again
+        return self._begin("look", self._ambiguous_left(), pose, step)
+
+    def _ambiguous_left(self) -> list[ObjectEntry]:
+        """Ambiguous entries with look-again views left, most matched first."""
+        cands = [e for e in self.db if e.id not in self.given_up and self.looks.get(e.id, 0) < self.cfg.look_again
                  and self.verifier.is_ambiguous(e)]
-        return self._begin("look", sorted(cands, key=lambda x: -x.e_max), pose, step)
+        return sorted(cands, key=lambda x: -x.e_max)
 
     def _look_again(self, pose: np.ndarray, step: int, capture) -> tuple[str, str] | None:
         """The action of a look-again or confirm trip, or None when there is none (a settled goal is
@@ -263,6 +281,12 @@ class SearchPolicy:
                         continue
                     if e.id in self.given_up or not self.verifier.is_ambiguous(e):
                         self._end_look(step, "decided")
+                        continue
+                elif lk["kind"] == "rival":
+                    gc = self.goal_candidates()
+                    if not gc or not self.needs_confirm(gc[0]) or e.id in self.given_up \
+                            or not self.verifier.is_ambiguous(e):
+                        self._end_look(step, "decided")  # a rival passed, or the match became clear
                         continue
                 elif not self.needs_confirm(e):
                     self._end_look(step, "decided")  # e.g. its e_max reached confirm_below on the way
@@ -285,7 +309,7 @@ class SearchPolicy:
             if plan.status in ("reached", "closest"):
                 err = bearing_error(pose, e.centroid)
                 if abs(err) > np.radians(LOOK_AGAIN_FACING_DEG):
-                    return ("turn_left" if err > 0 else "turn_right"), "look_again" if lk["kind"] == "look" else "confirm"
+                    return ("turn_left" if err > 0 else "turn_right"), _STATUS[lk["kind"]]
                 capture(e.id)
                 count = float(self.verifier.step_counts.get(e.id, 0.0))
                 if lk["kind"] == "confirm":
@@ -297,7 +321,7 @@ class SearchPolicy:
                 else:
                     self._end_look(step, "captured", count)
                 continue
-            return plan.action, "look_again" if lk["kind"] == "look" else "confirm"
+            return plan.action, _STATUS[lk["kind"]]
 
     def _target(self, verify_all) -> tuple[ObjectEntry | None, bool]:
         matched = self.goal_candidates()
