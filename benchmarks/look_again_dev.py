@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-steps", type=int, default=None, help="step cap (default the episode's, 1000)")
     ap.add_argument("--only", default=None, help="comma-separated episode indices (0-based) of the 16 to run")
     ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE",
-                    help="extra AgentConfig field (float or int), e.g. look_again_low=8")
+                    help="extra AgentConfig field (int, float or text), e.g. look_again_low=8")
     ap.add_argument("--out", default=None, help="output folder (one JSON per episode, resumable)")
     ap.add_argument("--reverse", action="store_true", help="run the episodes last first")
     ap.add_argument("--pair", default=None, metavar="DIR",
@@ -172,7 +172,10 @@ def main(argv=None) -> int:
     overrides = {}
     for kv in args.agent:
         k, v = kv.split("=", 1)
-        overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+        try:
+            overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+        except ValueError:
+            overrides[k] = v  # a text field, e.g. confirm_by=rivals
     pool = dev_episodes(100, args.first_house, seed=0)
     chosen = [ep for ep in pool if has_lookalike(house_for_episode(ep), ep)][:args.episodes]
     if args.only:
