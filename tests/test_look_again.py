@@ -248,9 +248,11 @@ def test_confirm_trip_refutes_a_marginal_match_whose_new_frame_falls_below_tau_m
     assert policy.refuted == {e: 11.0} and db[e].matched and not policy.goal_candidates()
     # refuted, the ambiguous entry now gets its look-again trip; the refuted one is never a look target
     assert status == "look_again" and policy.target_entry == amb
-    # in the fallback the refuted entry counts with its new frame's 11 < the ambiguous one's 12
+    # in eq 20 the refuted entry counts with its new frame's 11; in the end-of-exploration fallback
+    # with its e_max 16, above the ambiguous one's 12 (the refusal only withholds the early stop)
     policy._look = None
-    assert policy.choose_fallback().id == amb
+    assert policy._object_scores()[e].e_max == 11.0 and policy._object_scores()[amb].e_max == 12.0
+    assert policy.choose_fallback().id == e
     # a later clear pass (e_max >= confirm_below) makes it the goal again
     db.record_match(e, 25.0, 0, agent.cfg.tau_m)
     assert not policy.is_refuted(db[e]) and policy.goal_candidates() == [db[e]]

@@ -99,8 +99,8 @@ class AgentConfig:
     the robot walks to it. The new frame's count decides, not the running maximum: the largest
     count recorded for the object in the capture step (the crop match of that frame and the NVSM
     run that includes it) must reach tau_m on its own, or the match is refuted: no longer taken
-    for the goal (unless its e_max later reaches ``confirm_below``) and ranked by that new count
-    in the end-of-exploration fallback. A confirm trip that finds no viewpoint, no path or runs
+    for the goal (unless its e_max later reaches ``confirm_below``; the end-of-exploration fallback
+    still ranks it by e_max). A confirm trip that finds no viewpoint, no path or runs
     past ``look_again_steps`` leaves the match as it was. ``confirm_by`` "rivals" checks a marginal
     match another way: no trip to it, but while it is the best goal candidate the ambiguous
     objects (look-again band, ``look_again`` views each) get their look-again trips first, since

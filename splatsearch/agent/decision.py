@@ -127,9 +127,6 @@ class SearchPolicy:
                 and not self.is_refuted(e) and self.verifier.is_goal(e) and self.verifier.can_decide(e)
                 and e.e_max < cfg.confirm_below)
 
-    def _evidence(self, e: ObjectEntry) -> float:
-        """e_max, or for a refuted entry the count of the frame that refuted it."""
-        return self.refuted[e.id] if self.is_refuted(e) else e.e_max
 
     def promising(self) -> list[ObjectEntry]:
         """Entries whose colours reach tau_a from too few viewpoints to confirm them, most similar
@@ -144,17 +141,18 @@ class SearchPolicy:
         (colour similarity, then e_max, then the crop cosine), or None. The current choice is kept
         unless another entry beats it by ``FALLBACK_COLOUR_MARGIN`` in colour similarity or, at
         about the same similarity, by ``FALLBACK_MATCH_MARGIN`` matches, so that near-ties do not
-        make the robot turn back and forth."""
+        make the robot turn back and forth. A refuted match counts with its e_max here: the refusal
+        only withholds the early stop, and once nothing passed, it is still the best evidence."""
         cands = [e for e in self.db if e.id not in self.given_up]
         if not cands:
             self._fallback = None
             return None
-        best = max(cands, key=lambda e: (e.colour_similarity, self._evidence(e), self.crop_cosine.get(e.id, -1.0)))
+        best = max(cands, key=lambda e: (e.colour_similarity, e.e_max, self.crop_cosine.get(e.id, -1.0)))
         cur = next((e for e in cands if e.id == self._fallback), None)
         if cur is not None and best.id != cur.id:
             d = best.colour_similarity - cur.colour_similarity
             switch = d > FALLBACK_COLOUR_MARGIN or (
-                d >= -FALLBACK_COLOUR_MARGIN and self._evidence(best) >= self._evidence(cur) + FALLBACK_MATCH_MARGIN)
+                d >= -FALLBACK_COLOUR_MARGIN and best.e_max >= cur.e_max + FALLBACK_MATCH_MARGIN)
             if not switch:
                 best = cur
         self._fallback = best.id
