@@ -64,6 +64,8 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict) -> dict:
     out = r.to_json()
     out.pop("trajectory")
     out.update({"look_again": look_again, "look_log": agent.policy.look_log, "entries": entries,
+                "refuted": {str(k): v for k, v in agent.policy.refuted.items()},
+                "confirmed": sorted(agent.policy.confirmed),
                 "ambiguous_steps": ambiguous[0],
                 "look_again_steps": statuses.count("look_again"), "load1_start": round(load0, 2),
                 "load1_end": round(os.getloadavg()[0], 2), "wall_s": round(time.perf_counter() - t0, 1),
@@ -136,7 +138,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-steps", type=int, default=None, help="step cap (default the episode's, 1000)")
     ap.add_argument("--only", default=None, help="comma-separated episode indices (0-based) of the 16 to run")
     ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE",
-                    help="extra AgentConfig field (float or int), e.g. look_again_low=8")
+                    help="extra AgentConfig field (int, float or text), e.g. look_again_low=8")
     ap.add_argument("--out", default=None, help="output folder (one JSON per episode, resumable)")
     ap.add_argument("--reverse", action="store_true", help="run the episodes last first")
     ap.add_argument("--pair", default=None, metavar="DIR",
@@ -144,6 +146,11 @@ def main(argv=None) -> int:
                          "the look-again run began no trip, or the look_again-0 run never had an ambiguous entry "
                          "while nothing was the goal, is the same in both (deterministic), so its result is "
                          "copied (marked deduced_from) instead of run")
+    ap.add_argument("--copy-unmatched", default=None, metavar="DIR",
+                    help="a look_again-0 run without confirm: an episode in which no entry of it ever reached "
+                         "tau_m is the same under confirm_below with look_again 0 or look_again_after_refute "
+                         "(no confirm trip, so no refutation and no look-again trip), so its result is copied "
+                         "(marked deduced_from) instead of run")
     ap.add_argument("--summary", nargs="+", default=None, metavar="DIR", help="summarise finished runs and exit")
     args = ap.parse_args(argv)
     if args.summary:
@@ -157,6 +164,7 @@ def main(argv=None) -> int:
 
     from splatsearch.evaluation import EVAL_SEED_BASE
     from splatsearch.io import atomic_write_bytes
+    from splatsearch.search.matching import DEFAULT_TAU_M
     from splatsearch.sim.episodes import house_for_episode
 
     if args.first_house + 10 >= EVAL_SEED_BASE:
@@ -164,7 +172,10 @@ def main(argv=None) -> int:
     overrides = {}
     for kv in args.agent:
         k, v = kv.split("=", 1)
-        overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+        try:
+            overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+        except ValueError:
+            overrides[k] = v  # a text field, e.g. confirm_by=rivals
     pool = dev_episodes(100, args.first_house, seed=0)
     chosen = [ep for ep in pool if has_lookalike(house_for_episode(ep), ep)][:args.episodes]
     if args.only:
@@ -177,6 +188,18 @@ def main(argv=None) -> int:
         path = os.path.join(args.out, name)
         if os.path.exists(path):
             continue
+        if args.copy_unmatched:
+            src = os.path.join(args.copy_unmatched, name)
+            o = json.load(open(src)) if os.path.exists(src) else None
+            if args.look_again > 0 and not overrides.get("look_again_after_refute"):
+                ap.error("--copy-unmatched needs --look-again 0 or --agent look_again_after_refute=1")
+            if o is not None and o["look_again"] == 0 and not o["overrides"].get("confirm_below") and all(
+                    e["e_max"] < o["overrides"].get("tau_m", DEFAULT_TAU_M) for e in o["entries"]):
+                o.update({"look_again": args.look_again, "look_log": [], "look_again_steps": 0, "refuted": {},
+                          "confirmed": [], "overrides": overrides, "deduced_from": args.copy_unmatched})
+                atomic_write_bytes(path, json.dumps(o, indent=1).encode())
+                print(json.dumps({"deduced": name, "from": args.copy_unmatched}), flush=True)
+                continue
         other = os.path.join(args.pair, name) if args.pair else None
         if other and os.path.exists(other):
             o = json.load(open(other))

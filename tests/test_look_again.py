@@ -208,3 +208,117 @@ def test_episode_with_look_again_takes_the_extra_frame_and_verifies_again(episod
     assert calls[-1][1] == 30 and agent.db[eid].matched  # the NVSM ran again, on it
     assert log[-1]["e_max_before"] == 11.0 and log[-1]["e_max_after"] == 30.0
     assert env.steps == len(statuses) - 1  # every look-again move was an episode step
+
+
+def _marginal_match(ep, env, **cfg_kw):
+    """An agent whose DB holds one entry 3 m east of the start, taken for the goal by 16 inliers
+    (one NVSM run), and the planner stand-in; returns (agent, entry id, start pose, planner)."""
+    cfg = AgentConfig(colour_cue=False, **cfg_kw)
+    agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
+                             ep.start, config=cfg)
+    c = np.asarray(ep.start, float)
+    e = agent.db.add(ep.goal_class, [c[0] + 3.0, c[1], 0.5], c,
+                     bbox=(np.array([c[0] + 2.8, c[1] - 0.2, 0.0]), np.array([c[0] + 3.2, c[1] + 0.2, 0.9]))).entry_id
+    agent.db.record_match(e, 16.0, 0, cfg.tau_m)
+    planner = _Planner(agent.explorer.spec)
+    agent.explorer.planner = lambda: planner
+    return agent, e, c, planner
+
+
+def test_confirm_trip_refutes_a_marginal_match_whose_new_frame_falls_below_tau_m(episode):
+    ep, env = episode
+    agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0, look_again=1, look_again_after_refute=True)
+    policy, db = agent.policy, agent.db
+    # a second, ambiguous entry west of the start: no look-again trip before a refutation
+    amb = db.add(ep.goal_class, [c[0] - 3.0, c[1], 0.5], c,
+                 bbox=(np.array([c[0] - 3.2, c[1] - 0.2, 0.0]), np.array([c[0] - 2.8, c[1] + 0.2, 0.9]))).entry_id
+    db.record_match(amb, 12.0, 0, agent.cfg.tau_m)
+    assert policy.needs_confirm(db[e]) and policy.goal_candidates() == [db[e]]
+
+    def capture(eid):  # the new side: 11 inliers in this frame (e_max keeps the old 16)
+        agent.verifier._note(eid, 11.0)
+        db.record_match(eid, 11.0, 0, agent.cfg.tau_m)
+
+    assert policy.decide(c, 1, capture=capture) == ("move_forward", "confirm")  # not straight to the goal
+    planner.status = "reached"
+    agent.verifier.new_step()
+    action, status = policy.decide(np.array([c[0], c[1], 0.0]), 2, capture=capture)
+    log = [x for x in policy.look_log if x["kind"] == "confirm"]
+    assert log[-1]["outcome"] == "refuted" and log[-1]["count_new"] == 11.0 and log[-1]["e_max_after"] == 16.0
+    assert policy.refuted == {e: 11.0} and db[e].matched and not policy.goal_candidates()
+    # refuted, the ambiguous entry now gets its look-again trip; the refuted one is never a look target
+    assert status == "look_again" and policy.target_entry == amb
+    # in eq 20 the refuted entry counts with its new frame's 11; in the end-of-exploration fallback
+    # with its e_max 16, above the ambiguous one's 12 (the refusal only withholds the early stop)
+    policy._look = None
+    assert policy._object_scores()[e].e_max == 11.0 and policy._object_scores()[amb].e_max == 12.0
+    assert policy.choose_fallback().id == e
+    # a later clear pass (e_max >= confirm_below) makes it the goal again
+    db.record_match(e, 25.0, 0, agent.cfg.tau_m)
+    assert not policy.is_refuted(db[e]) and policy.goal_candidates() == [db[e]]
+
+
+def test_confirm_trip_keeps_a_match_the_new_frame_confirms_and_is_off_by_default(episode):
+    ep, env = episode
+    agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0)
+    policy = agent.policy
+    planner.status = "reached"
+
+    def capture(eid):
+        agent.verifier._note(eid, 15.0)  # passes tau_m again on its own
+
+    facing = np.array([c[0], c[1], 0.0])
+    action, status = policy.decide(facing, 1, capture=capture)
+    assert policy.look_log[-1]["outcome"] == "confirmed" and e in policy.confirmed
+    assert status in ("goal_reached", "to_goal") and policy.target_entry == e
+    # confirmed once: no second trip
+    n = len(policy.look_log)
+    policy.decide(facing, 2, capture=capture)
+    assert len(policy.look_log) == n
+    # a match at or above confirm_below needs no trip; with confirm_below 0 (the default) none does
+    agent.db.record_match(e, 18.0, 0, agent.cfg.tau_m)
+    policy.confirmed.clear()
+    assert not policy.needs_confirm(agent.db[e])
+    agent0, e0, _, _ = _marginal_match(ep, env)
+    assert AgentConfig().confirm_below == 0 and not agent0.policy.needs_confirm(agent0.db[e0])
+    assert agent0.policy.decide(facing, 1, capture=capture)[1] != "confirm"
+    with pytest.raises(ValueError, match="confirm_below"):
+        AgentConfig(confirm_below=12.0)
+
+
+def test_rival_check_looks_at_ambiguous_entries_before_a_marginal_match_stands(episode):
+    ep, env = episode
+    agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0, confirm_by="rivals", look_again=1,
+                                           look_again_after_refute=True)
+    policy, db = agent.policy, agent.db
+    amb = db.add(ep.goal_class, [c[0] - 3.0, c[1], 0.5], c,
+                 bbox=(np.array([c[0] - 3.2, c[1] - 0.2, 0.0]), np.array([c[0] - 2.8, c[1] + 0.2, 0.9]))).entry_id
+    db.record_match(amb, 12.0, 0, agent.cfg.tau_m)
+    gains = {amb: 12.0}
+
+    def capture(eid):
+        assert eid == amb  # never a trip to the marginal match itself
+        db.record_match(eid, gains[eid], 0, agent.cfg.tau_m)
+
+    # the marginal match (16) is the goal candidate, but the ambiguous rival gets its look first
+    assert policy.decide(c, 1, capture=capture) == ("move_forward", "look_again")
+    assert policy.target_entry == amb and policy.look_log == []
+    planner.status = "reached"
+    west = np.array([c[0], c[1], np.pi])
+    # the rival stays at 12: no rival left, the match stands and the robot goes to it
+    action, status = policy.decide(west, 2, capture=capture)
+    assert [x["kind"] for x in policy.look_log] == ["rival"] and policy.look_log[-1]["outcome"] == "captured"
+    assert e in policy.confirmed and status in ("goal_reached", "to_goal") and policy.target_entry == e
+    assert policy.decide(west, 3, capture=capture)[1] != "look_again"
+    # the same again, but the rival's other side lifts it to 30: it overtakes the marginal match
+    agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0, confirm_by="rivals", look_again=1)
+    policy, db = agent.policy, agent.db
+    amb = db.add(ep.goal_class, [c[0] - 3.0, c[1], 0.5], c,
+                 bbox=(np.array([c[0] - 3.2, c[1] - 0.2, 0.0]), np.array([c[0] - 2.8, c[1] + 0.2, 0.9]))).entry_id
+    db.record_match(amb, 12.0, 0, agent.cfg.tau_m)
+    gains[amb] = 30.0
+    planner.status = "reached"
+    action, status = policy.decide(west, 1, capture=capture)
+    assert policy.goal_candidates()[0].id == amb and policy.target_entry == amb and status == "goal_reached"
+    with pytest.raises(ValueError, match="confirm_by"):
+        AgentConfig(confirm_by="vote")

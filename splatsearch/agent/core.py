@@ -182,6 +182,7 @@ class SplatSearchAgent:
         t = {}
         t0 = time.perf_counter()
         pose = np.asarray(pose, np.float64)
+        self.verifier.new_step()
         self.explorer.observe(depth, viewmat, self.K, pose, rgb, action=self._last_action)
         t["nav"] = time.perf_counter() - t0
         mapped = self.frame_index % self.cfg.map_every == 0

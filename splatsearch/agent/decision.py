@@ -18,6 +18,15 @@ robot walks to a viewpoint that sees what the object's local map lacks
 agent's ``capture`` callback adds that frame to the object's observations and runs its NVSM
 again (``look_again`` views per object at most, ``look_again_steps`` steps per trip).
 
+With ``confirm_below`` > tau_m (opt-in), an entry taken for the goal by a marginal feature match
+(e_max in [tau_m, ``confirm_below``), colours undecided) gets one confirm trip of the same kind
+before the robot walks to it; the count of the frame taken there (not the running maximum) must
+reach tau_m again, or the entry is refuted (``refuted``): a look-alike that passed by a little
+cannot end the episode, and e_max, which keeps every run's best, could never take that back.
+With ``confirm_by`` "rivals" there is no trip to the marginal match itself: while it is the best
+goal candidate, the ambiguous entries get their look-again trips (kind "rival") first, and it
+stands once none is left.
+
 A goal that gets no closer for ``goal_patience`` reachable steps, or that no path reaches once
 the house is explored, is given up and the next candidate taken. The explorer is asked once per
 step (twice in the one step where it reports the house explored and a fallback target is then
@@ -40,6 +49,8 @@ from .verification import Verifier
 LOOK_AGAIN_RADIUS = 0.25
 #: the robot faces the object when its bearing is within this (degrees): a 30-degree turn lattice
 LOOK_AGAIN_FACING_DEG = 15.0
+#: the step status of each kind of trip
+_STATUS = {"look": "look_again", "rival": "look_again", "confirm": "confirm"}
 
 #: hysteresis of the end-of-exploration fallback: another entry replaces the current one only
 #: when its colour similarity is higher by more than this, or when it is about as similar and has
@@ -63,8 +74,11 @@ class SearchPolicy:
     State: ``explored`` (the explorer found no frontier left), ``given_up`` (entry ids not to be
     chosen again), for display ``target_entry``, ``path_xy`` (P, 2) metres and
     ``last_decision`` (the explorer's latest frontier decision), and for the look-again step
-    ``looks`` (entry id -> views begun) and ``look_log`` (one dict per trip: entry, start and end
-    step, outcome, the viewpoint and path metres, e_max before and after).
+    ``looks`` (entry id -> views begun) and ``look_log`` (one dict per trip: kind "look",
+    "rival" or "confirm", entry, start and end step, outcome, the viewpoint and path metres, e_max before and
+    after, and the captured frame's own count ``count_new``), ``confirmed`` (entry ids whose
+    marginal match a confirm trip settled or could not check) and ``refuted`` (entry id -> the
+    captured frame's count, below tau_m).
     """
 
     def __init__(self, config: AgentConfig, strategy: Strategy, db: ObjectDB, verifier: Verifier,
@@ -85,6 +99,8 @@ class SearchPolicy:
         self.look_log: list[dict] = []
         self._look: dict | None = None  # the trip under way
         self._looked_from: dict[int, list[float]] = {}  # entry id -> azimuths of its look-again viewpoints
+        self.confirmed: set[int] = set()
+        self.refuted: dict[int, float] = {}
 
     # -- which entries --------------------------------------------------------------------------
     def identifies_now(self) -> bool:
@@ -95,8 +111,22 @@ class SearchPolicy:
         """Entries taken for the goal and not given up, most likely first (colours, then e_max)."""
         if not self.identifies_now():
             return []
-        out = [e for e in self.db if e.id not in self.given_up and self.verifier.is_goal(e)]
+        out = [e for e in self.db if e.id not in self.given_up and self.verifier.is_goal(e)
+               and not self.is_refuted(e)]
         return sorted(out, key=lambda e: (-e.colour_similarity, -e.e_max))
+
+    def is_refuted(self, e: ObjectEntry) -> bool:
+        """A confirm trip refuted ``e``'s match and its e_max has not since reached ``confirm_below``."""
+        return e.id in self.refuted and e.e_max < self.cfg.confirm_below
+
+    def needs_confirm(self, e: ObjectEntry) -> bool:
+        """``e`` is taken for the goal by a marginal feature match (e_max in [tau_m,
+        ``confirm_below``), colours undecided) that no confirm trip has settled yet."""
+        cfg = self.cfg
+        return (cfg.confirm_below > cfg.tau_m and e.id not in self.given_up and e.id not in self.confirmed
+                and not self.is_refuted(e) and self.verifier.is_goal(e) and self.verifier.can_decide(e)
+                and e.e_max < cfg.confirm_below)
+
 
     def promising(self) -> list[ObjectEntry]:
         """Entries whose colours reach tau_a from too few viewpoints to confirm them, most similar
@@ -111,7 +141,8 @@ class SearchPolicy:
         (colour similarity, then e_max, then the crop cosine), or None. The current choice is kept
         unless another entry beats it by ``FALLBACK_COLOUR_MARGIN`` in colour similarity or, at
         about the same similarity, by ``FALLBACK_MATCH_MARGIN`` matches, so that near-ties do not
-        make the robot turn back and forth."""
+        make the robot turn back and forth. A refuted match counts with its e_max here: the refusal
+        only withholds the early stop, and once nothing passed, it is still the best evidence."""
         cands = [e for e in self.db if e.id not in self.given_up]
         if not cands:
             self._fallback = None
@@ -145,7 +176,8 @@ class SearchPolicy:
         only then (it runs the due verification). ``capture(entry_id)``: adds the current frame to
         the entry's observations and runs its NVSM again (the look-again step; without it, or with
         ``look_again`` 0, there is none)."""
-        if capture is not None and self.cfg.look_again > 0 and self.strategy.nvsm_during_search:
+        trips = self.cfg.look_again > 0 or self.cfg.confirm_below > self.cfg.tau_m
+        if capture is not None and trips and self.strategy.nvsm_during_search:
             out = self._look_again(np.asarray(pose, np.float64), step, capture)
             if out is not None:
                 return out
@@ -155,60 +187,113 @@ class SearchPolicy:
         return action, status
 
     # -- looking again --------------------------------------------------------------------------
-    def _end_look(self, step: int, outcome: str) -> None:
+    def _end_look(self, step: int, outcome: str, count_new: float | None = None) -> None:
         lk, self._look = self._look, None
         e = self.db[lk["entry"]]
-        self.look_log.append({"entry": e.id, "start": lk["start"], "end": int(step), "outcome": outcome,
-                              "xy": [float(v) for v in lk["xy"]], "path_m": round(float(lk["path"]), 2),
-                              "e_max_before": float(lk["e_max"]), "e_max_after": float(e.e_max)})
+        if lk["kind"] == "confirm" and outcome != "refuted":
+            self.confirmed.add(e.id)  # settled, or it could not be checked: the match stands
+        self.look_log.append({"kind": lk["kind"], "entry": e.id, "start": lk["start"], "end": int(step),
+                              "outcome": outcome, "xy": [float(v) for v in lk["xy"]],
+                              "path_m": round(float(lk["path"]), 2), "e_max_before": float(lk["e_max"]),
+                              "e_max_after": float(e.e_max), "count_new": count_new})
 
-    def _start_look(self, pose: np.ndarray, step: int) -> dict | None:
-        """Begin a trip to the most matched ambiguous entry that has views left and a viewpoint."""
-        cfg = self.cfg
-        cands = [e for e in self.db if e.id not in self.given_up and self.looks.get(e.id, 0) < cfg.look_again
-                 and self.verifier.is_ambiguous(e)]
+    def _viewpoint(self, e: ObjectEntry, D: np.ndarray):
+        """The look-again viewpoint of entry ``e`` (``choose_viewpoint``) given the geodesic
+        distances ``D`` from the robot, or None."""
+        occ = self.explorer.occupancy
+        frames = self.observations[e.id] if self.observations is not None else []
+        seen = list(azimuths_of([f.viewmat for f in frames], e.centroid)) + self._looked_from.get(e.id, [])
+        vh = self.verifier.view_holes.get(e.id)
+        return choose_viewpoint(e.centroid, e.extent_radius, occ.spec, occ.occupied, D, seen,
+                                view_azimuths=None if vh is None else azimuths_of(vh[0], e.centroid),
+                                view_holes=None if vh is None else vh[1], distance=self.cfg.look_again_distance,
+                                max_path=self.cfg.look_again_max_path)
+
+    def _begin(self, kind: str, cands: list[ObjectEntry], pose: np.ndarray, step: int) -> dict | None:
+        """Begin a trip of ``kind`` ("look", "rival" or "confirm") to the first of ``cands`` that has a
+        viewpoint; the others without one are logged (and, for "look", get no more trips; for
+        "confirm", their match stands)."""
         if not cands:
             return None
-        occ = self.explorer.occupancy
         D = self.explorer.planner().distance_from(pose[:2])
-        for e in sorted(cands, key=lambda x: -x.e_max):
-            self.looks[e.id] = self.looks.get(e.id, 0) + 1
-            frames = self.observations[e.id] if self.observations is not None else []
-            seen = list(azimuths_of([f.viewmat for f in frames], e.centroid)) + self._looked_from.get(e.id, [])
-            vh = self.verifier.view_holes.get(e.id)
-            v = choose_viewpoint(e.centroid, e.extent_radius, occ.spec, occ.occupied, D, seen,
-                                 view_azimuths=None if vh is None else azimuths_of(vh[0], e.centroid),
-                                 view_holes=None if vh is None else vh[1], distance=cfg.look_again_distance,
-                                 max_path=cfg.look_again_max_path)
+        for e in cands:
+            if kind != "confirm":
+                self.looks[e.id] = self.looks.get(e.id, 0) + 1
+            v = self._viewpoint(e, D)
             if v is None:
-                self.looks[e.id] = cfg.look_again  # nowhere to look from: no more trips for it
-                self.look_log.append({"entry": e.id, "start": int(step), "end": int(step), "outcome": "no_viewpoint",
-                                      "xy": None, "path_m": None, "e_max_before": float(e.e_max),
-                                      "e_max_after": float(e.e_max)})
+                if kind != "confirm":
+                    self.looks[e.id] = self.cfg.look_again  # nowhere to look from: no more trips for it
+                else:
+                    self.confirmed.add(e.id)
+                self.look_log.append({"kind": kind, "entry": e.id, "start": int(step), "end": int(step),
+                                      "outcome": "no_viewpoint", "xy": None, "path_m": None,
+                                      "e_max_before": float(e.e_max), "e_max_after": float(e.e_max),
+                                      "count_new": None})
                 continue
             self._looked_from.setdefault(e.id, []).append(v.azimuth)
-            return {"entry": e.id, "xy": v.xy, "start": int(step), "path": v.path, "e_max": e.e_max}
+            return {"kind": kind, "entry": e.id, "xy": v.xy, "start": int(step), "path": v.path, "e_max": e.e_max}
         return None
 
+    def _start_look(self, pose: np.ndarray, step: int) -> dict | None:
+        """Begin a confirm trip to the most likely goal candidate when its marginal match is unsettled
+        (with ``confirm_by`` "rivals": a look-again trip to an ambiguous entry instead, or, with
+        none left, let the match stand); else, while nothing is taken for the goal (and, with ``look_again_after_refute``, once a
+        match was refuted), a look-again trip to the most matched ambiguous entry that has views
+        left and a viewpoint."""
+        cfg = self.cfg
+        gc = self.goal_candidates()
+        if gc and self.needs_confirm(gc[0]):
+            if cfg.confirm_by == "rivals":
+                # the ambiguous entries that could overtake the marginal match get their look first
+                lk = self._begin("rival", self._ambiguous_left(), pose, step) if cfg.look_again > 0 else None
+                if lk is None:
+                    self.confirmed.add(gc[0].id)  # no rival left to look at: the match stands
+                return lk
+            return self._begin("confirm", gc[:1], pose, step)
+        if gc:
+            return None
+        if cfg.look_again <= 0 or (cfg.look_again_after_refute and not self.refuted):
+            return None
+        return self._begin("look", self._ambiguous_left(), pose, step)
+
+    def _ambiguous_left(self) -> list[ObjectEntry]:
+        """Ambiguous entries with look-again views left, most matched first."""
+        cands = [e for e in self.db if e.id not in self.given_up and self.looks.get(e.id, 0) < self.cfg.look_again
+                 and self.verifier.is_ambiguous(e)]
+        return sorted(cands, key=lambda x: -x.e_max)
+
     def _look_again(self, pose: np.ndarray, step: int, capture) -> tuple[str, str] | None:
-        """The action of a look-again trip, or None when there is none (a goal is known, nothing is
-        ambiguous, or no viewpoint is left). Arriving and facing the object, it calls
-        ``capture(entry_id)`` and goes on with the next trip, if any."""
+        """The action of a look-again or confirm trip, or None when there is none (a settled goal is
+        known, nothing is ambiguous, or no viewpoint is left). Arriving and facing the object, it
+        calls ``capture(entry_id)``; a confirm trip then keeps the match iff the captured frame's
+        own count (``Verifier.step_counts``) reaches tau_m. Then it goes on with the next trip, if
+        any."""
         cfg = self.cfg
         while True:
-            if self.goal_candidates():
-                if self._look is not None:
-                    self._end_look(step, "goal_found")
-                return None
-            if self._look is None:
-                self._look = self._start_look(pose, step)
-                if self._look is None:
-                    return None
             lk = self._look
-            e = self.db[lk["entry"]]
-            if e.id in self.given_up or not self.verifier.is_ambiguous(e):
-                self._end_look(step, "decided")
-                continue
+            if lk is not None:
+                e = self.db[lk["entry"]]
+                if lk["kind"] == "look":
+                    if self.goal_candidates():
+                        self._end_look(step, "goal_found")
+                        continue
+                    if e.id in self.given_up or not self.verifier.is_ambiguous(e):
+                        self._end_look(step, "decided")
+                        continue
+                elif lk["kind"] == "rival":
+                    gc = self.goal_candidates()
+                    if not gc or not self.needs_confirm(gc[0]) or e.id in self.given_up \
+                            or not self.verifier.is_ambiguous(e):
+                        self._end_look(step, "decided")  # a rival passed, or the match became clear
+                        continue
+                elif not self.needs_confirm(e):
+                    self._end_look(step, "decided")  # e.g. its e_max reached confirm_below on the way
+                    continue
+            else:
+                self._look = lk = self._start_look(pose, step)
+                if lk is None:
+                    return None
+                e = self.db[lk["entry"]]
             if step - lk["start"] >= cfg.look_again_steps:
                 self._end_look(step, "timeout")
                 continue
@@ -222,11 +307,19 @@ class SearchPolicy:
             if plan.status in ("reached", "closest"):
                 err = bearing_error(pose, e.centroid)
                 if abs(err) > np.radians(LOOK_AGAIN_FACING_DEG):
-                    return ("turn_left" if err > 0 else "turn_right"), "look_again"
+                    return ("turn_left" if err > 0 else "turn_right"), _STATUS[lk["kind"]]
                 capture(e.id)
-                self._end_look(step, "captured")
+                count = float(self.verifier.step_counts.get(e.id, 0.0))
+                if lk["kind"] == "confirm":
+                    if count >= cfg.tau_m or e.e_max >= cfg.confirm_below:
+                        self._end_look(step, "confirmed", count)
+                    else:
+                        self.refuted[e.id] = count
+                        self._end_look(step, "refuted", count)
+                else:
+                    self._end_look(step, "captured", count)
                 continue
-            return plan.action, "look_again"
+            return plan.action, _STATUS[lk["kind"]]
 
     def _target(self, verify_all) -> tuple[ObjectEntry | None, bool]:
         matched = self.goal_candidates()
@@ -283,8 +376,12 @@ class SearchPolicy:
 
     def _object_scores(self) -> list[ObjectScore]:
         """eq 20's objects in match units: an object whose colours look like the goal's draws the
-        robot to the frontiers around it as a tau_m match would."""
+        robot to the frontiers around it as a tau_m match would. A refuted match counts with the
+        frame that refuted it."""
         cents, scores = self.db.scores()
+        for e in self.db:
+            if self.is_refuted(e):
+                scores[e.id] = min(scores[e.id], self.refuted[e.id])
         if self.verifier.colour_cue:
             sim = np.array([max(e.colour_similarity, 0.0) for e in self.db])
             if len(sim):

@@ -56,7 +56,9 @@ class Verifier:
 
     State: :attr:`nvsm_runs` (NVSM runs so far), :attr:`last_views` (the latest run's views) and
     :attr:`view_holes` (entry id -> (cameras (V, 4, 4), fraction of each render left empty) of its
-    latest run, for the look-again step).
+    latest run, for the look-again step) and :attr:`step_counts` (entry id -> the largest count,
+    camera-image scale, recorded for it since :meth:`new_step`: what the current frame alone says,
+    which the confirm trip decides on).
     """
 
     def __init__(self, goal: np.ndarray, K: np.ndarray, width: int, height: int, config: AgentConfig,
@@ -77,6 +79,14 @@ class Verifier:
         self.nvsm_runs = 0
         self.last_views: NovelViews | None = None
         self.view_holes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.step_counts: dict[int, float] = {}
+
+    def new_step(self) -> None:
+        """Forget :attr:`step_counts` (the agent calls this before it senses a new frame)."""
+        self.step_counts = {}
+
+    def _note(self, entry_id: int, count: float) -> None:
+        self.step_counts[entry_id] = max(self.step_counts.get(entry_id, 0.0), float(count))
 
     # -- the decision -----------------------------------------------------------------------
     def colour_confirms(self, e: ObjectEntry) -> bool:
@@ -115,6 +125,7 @@ class Verifier:
         (H, W) bool; ``MATCH_CROP_MARGIN`` of context) and record the count; returns it."""
         n = int(self.matcher.count(self.goal, crop_around(rgb, mask, margin=MATCH_CROP_MARGIN)))
         db.record_match(entry_id, float(n), 0, self.cfg.tau_m, nvsm_run=self.strategy.observation_match_is_nvsm)
+        self._note(entry_id, n)
         return n
 
     def verify(self, db: ObjectDB, entry_id: int, observations: ObservationStore,
@@ -136,6 +147,7 @@ class Verifier:
         # on the camera-image scale, so eq 18's tau_m and eq 20's scores treat both kinds alike
         scaled = float(score.e_max) * cfg.tau_m / cfg.nvsm_tau_m
         db.record_match(entry_id, scaled, score.i_star, cfg.tau_m, score.viewmats[score.i_star])
+        self._note(entry_id, scaled)
         self.nvsm_runs += 1
         self.last_views = NovelViews(entry_id, score.viewmats, score.rendered, score.images, score.counts, score.i_star)
         empty = (holes_from_alpha(score.alpha, self.nvsm_config.alpha_tau) if score.alpha is not None
