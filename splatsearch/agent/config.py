@@ -83,7 +83,7 @@ class AgentConfig:
     grows with its mask up to ``colour_full_px`` pixels. Objects the cue already decides get no
     feature matching (it could not change the decision).
 
-    Look again (issue 23, opt-in): ``look_again`` is the number of new viewpoints from which an
+    Look again (issue 23): ``look_again`` is the number of new viewpoints from which an
     ambiguous goal-class object is looked at again (0: none); ambiguous means at least one NVSM
     run, not the goal, and a best count e_max of at least ``look_again_low`` but below tau_m. The
     robot walks (FMM) to a free cell about ``look_again_distance`` m from the object, reachable
@@ -93,7 +93,10 @@ class AgentConfig:
     than ``look_again_steps`` steps is abandoned (it still counts as one of the object's views);
     the moves are episode steps, and an object taken for the goal ends the look-again.
 
-    Confirm (issue 23, opt-in): with ``confirm_below`` > tau_m, an object taken for the goal by
+    Confirm (issue 23; default since stop 45: ``confirm_below`` 18, ``look_again`` 1 and
+    ``look_again_after_refute``, passed its dev rule, docs/results.md): with ``confirm_below`` > tau_m
+    (at or below tau_m, e.g. 0: off; it is an absolute count, so raising tau_m to 18 or more turns
+    it off), an object taken for the goal by
     feature matches alone whose e_max is in [tau_m, ``confirm_below``) (a marginal match) is looked
     at once from another side (the same viewpoint choice and trip as the look-again step) before
     the robot walks to it. The new frame's count decides, not the running maximum: the largest
@@ -150,13 +153,13 @@ class AgentConfig:
     goal_patience: int = 60
     identify_every_frame: bool = True
     verify_steps: int = 6
-    look_again: int = 0
+    look_again: int = 1
     look_again_low: float = 9.0
     look_again_distance: float = 1.6
     look_again_max_path: float = 8.0
     look_again_steps: int = 40
-    look_again_after_refute: bool = False
-    confirm_below: float = 0.0
+    look_again_after_refute: bool = True
+    confirm_below: float = 18.0
     confirm_by: str = "new_frame"
     colour_cue: bool = True
     tau_a: float = 0.45
@@ -183,8 +186,8 @@ class AgentConfig:
                              "look_again_max_path > 0 and look_again_low >= 0")
         if self.confirm_by not in ("new_frame", "rivals"):
             raise ValueError(f"confirm_by must be 'new_frame' or 'rivals', got {self.confirm_by!r}")
-        if not (self.confirm_below == 0 or self.confirm_below > self.tau_m):
-            raise ValueError(f"confirm_below must be 0 (off) or above tau_m = {self.tau_m}, got {self.confirm_below}")
+        if not self.confirm_below >= 0:
+            raise ValueError(f"confirm_below must be >= 0 (at or below tau_m: off), got {self.confirm_below}")
         if not (0 <= self.colour_veto <= self.tau_a <= 1) or self.colour_min_views < 1 \
                 or self.colour_full_px < 1:
             raise ValueError("need 0 <= colour_veto <= tau_a <= 1, colour_min_views >= 1 and "
