@@ -329,3 +329,19 @@ def test_rival_check_looks_at_ambiguous_entries_before_a_marginal_match_stands(e
     assert policy.goal_candidates()[0].id == amb and policy.target_entry == amb and status == "goal_reached"
     with pytest.raises(ValueError, match="confirm_by"):
         AgentConfig(confirm_by="vote")
+
+
+def test_confirm_cli_flags_have_help():
+    import argparse
+
+    from splatsearch.cli_config import add_config_flags, config_overrides
+
+    ap = argparse.ArgumentParser()
+    add_config_flags(ap, AgentConfig, "agent")
+    args = ap.parse_args(["--agent.confirm_below", "20", "--agent.confirm_by", "rivals",
+                          "--agent.look_again_after_refute", "off"])
+    assert config_overrides(args, "agent") == {"confirm_below": 20.0, "confirm_by": "rivals",
+                                               "look_again_after_refute": False}
+    helps = {a.dest: a.help for a in ap._actions}
+    assert "marginal" in helps["agent.confirm_below"] and "rivals" in helps["agent.confirm_by"]
+    assert "refuted" in helps["agent.look_again_after_refute"]

@@ -93,24 +93,23 @@ class AgentConfig:
     than ``look_again_steps`` steps is abandoned (it still counts as one of the object's views);
     the moves are episode steps, and an object taken for the goal ends the look-again.
 
-    Confirm (issue 23; default since stop 45: ``confirm_below`` 18, ``look_again`` 1 and
-    ``look_again_after_refute``, passed its dev rule, docs/results.md): with ``confirm_below`` > tau_m
-    (at or below tau_m, e.g. 0: off; it is an absolute count, so raising tau_m to 18 or more turns
-    it off), an object taken for the goal by
-    feature matches alone whose e_max is in [tau_m, ``confirm_below``) (a marginal match) is looked
-    at once from another side (the same viewpoint choice and trip as the look-again step) before
-    the robot walks to it. The new frame's count decides, not the running maximum: the largest
-    count recorded for the object in the capture step (the crop match of that frame and the NVSM
-    run that includes it) must reach tau_m on its own, or the match is refuted: no longer taken
-    for the goal (unless its e_max later reaches ``confirm_below``; the end-of-exploration fallback
-    still ranks it by e_max). A confirm trip that finds no viewpoint, no path or runs
-    past ``look_again_steps`` leaves the match as it was. ``confirm_by`` "rivals" checks a marginal
-    match another way: no trip to it, but while it is the best goal candidate the ambiguous
-    objects (look-again band, ``look_again`` views each) get their look-again trips first, since
-    one of them may be the goal and overtake it; with none left (or none reachable) the match
-    stands. ``look_again_after_refute``: look-again
-    trips (``look_again`` > 0) begin only once a confirm trip has refuted a match in this episode
-    (a look-alike is about, so the ambiguous objects are worth a trip).
+    Confirm (issue 23, the default since stop 45, when its dev rule passed, docs/results.md).
+    ``confirm_below`` is the upper end (inliers, camera-image scale) of the marginal matches that
+    get a confirm trip, off at or below tau_m (an absolute count, so raising tau_m to 18 or more
+    turns it off). An object taken for the goal by feature matches alone whose e_max is in
+    [tau_m, confirm_below) is looked at once from another side (the viewpoint choice and trip of
+    the look-again step) before the robot walks to it. The new frame's count decides, not the
+    running maximum, which keeps every run's best and could never take a false match back. The
+    largest count recorded for the object in the capture step (the crop match of that frame and
+    the NVSM run that includes it) must reach tau_m on its own, or the match is refuted, no longer
+    taken for the goal unless its e_max later reaches confirm_below, while the end-of-exploration
+    fallback still ranks it by e_max. A confirm trip that finds no viewpoint, no path or runs past
+    the look-again step limit leaves the match as it was. ``confirm_by`` is "new_frame" (the trip
+    above) or "rivals" (no trip to the marginal match, but while it is the best goal candidate the
+    ambiguous objects get their look-again trips first, since one may be the goal and overtake it,
+    and with none left the match stands). ``look_again_after_refute`` lets look-again trips begin
+    only once a confirm trip has refuted a match in the episode (a look-alike is about, so the
+    ambiguous objects are worth a trip).
 
     Planning: ``alpha``, ``beta``, ``delta``: eq 19 weights. ``stop_margin`` (m): stop this close
     to a goal object's extent. ``goal_patience``: reachable steps without getting 0.1 m closer
