@@ -128,7 +128,7 @@ def summary(dirs: list[str]) -> int:
         sr = sum(r["success"] for r in rs) / n
         spl = sum(r["spl"] for r in rs) / n
         trips = sum(len([x for x in r["look_log"] if x["outcome"] != "no_viewpoint"]) for r in rs)
-        cap = sum(sum(x["outcome"] == "captured" for x in r["look_log"]) for r in rs)
+        cap = sum(sum(x["outcome"] in ("captured", "confirmed", "refuted") for x in r["look_log"]) for r in rs)
         la_steps = sum(r["look_again_steps"] for r in rs)
         sep = separation(rs)
         print(f"{d}: SR {sr:.3f} ({sum(r['success'] for r in rs)}/{len(rs)}), SPL {spl:.3f}, "
