@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
-def run(ep, look_again: int, max_steps: int | None, overrides: dict) -> dict:
+def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: bool = False) -> dict:
     from nvsm_views import _nearest_instance
 
     from splatsearch.agent import AgentConfig
@@ -37,7 +37,7 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict) -> dict:
     from splatsearch.sim.episodes import house_for_episode
 
     env = HouseEnv(house_for_episode(ep), width=ep.goal_width, height=ep.goal_height)
-    cfg = AgentConfig(variant="splatsearch", colour_cue=False, look_again=look_again, **overrides)
+    cfg = AgentConfig(variant="splatsearch", colour_cue=colour, look_again=look_again, **overrides)
     holder = {}
     statuses = []
 
@@ -71,6 +71,24 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict) -> dict:
                 "load1_end": round(os.getloadavg()[0], 2), "wall_s": round(time.perf_counter() - t0, 1),
                 "overrides": overrides})
     return out
+
+
+def default_episodes(n: int, first_house: int, per_house: int = 5) -> list:
+    """``n`` val-hard episodes in default (not look-alike) houses ``first_house, ...`` (< 1000),
+    sampled as :func:`nvsm_views.dev_episodes` samples the look-alike ones."""
+    from splatsearch import sim
+    from splatsearch.evaluation import EVAL_SEED_BASE
+
+    eps, hs = [], first_house
+    while len(eps) < n:
+        if hs >= EVAL_SEED_BASE:
+            raise ValueError(f"dev houses must stay below {EVAL_SEED_BASE}")
+        house = sim.make_house(hs)
+        for e in sim.make_episodes(house, min(per_house, n - len(eps)), "val-hard", seed=0, env=sim.HouseEnv(house)):
+            e.episode_id = len(eps)
+            eps.append(e)
+        hs += 1
+    return eps
 
 
 def separation(rows: list[dict]) -> dict:
@@ -110,7 +128,7 @@ def summary(dirs: list[str]) -> int:
         sr = sum(r["success"] for r in rs) / n
         spl = sum(r["spl"] for r in rs) / n
         trips = sum(len([x for x in r["look_log"] if x["outcome"] != "no_viewpoint"]) for r in rs)
-        cap = sum(sum(x["outcome"] == "captured" for x in r["look_log"]) for r in rs)
+        cap = sum(sum(x["outcome"] in ("captured", "confirmed", "refuted") for x in r["look_log"]) for r in rs)
         la_steps = sum(r["look_again_steps"] for r in rs)
         sep = separation(rs)
         print(f"{d}: SR {sr:.3f} ({sum(r['success'] for r in rs)}/{len(rs)}), SPL {spl:.3f}, "
@@ -151,6 +169,9 @@ def main(argv=None) -> int:
                          "tau_m is the same under confirm_below with look_again 0 or look_again_after_refute "
                          "(no confirm trip, so no refutation and no look-again trip), so its result is copied "
                          "(marked deduced_from) instead of run")
+    ap.add_argument("--colour", action="store_true",
+                    help="default houses (no look-alike furniture) with the colour cue on, as `splatsearch eval` "
+                         "without --identical-furniture: a check that the look-again/confirm settings keep that SR")
     ap.add_argument("--summary", nargs="+", default=None, metavar="DIR", help="summarise finished runs and exit")
     args = ap.parse_args(argv)
     if args.summary:
@@ -176,7 +197,7 @@ def main(argv=None) -> int:
             overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
         except ValueError:
             overrides[k] = v  # a text field, e.g. confirm_by=rivals
-    pool = dev_episodes(100, args.first_house, seed=0)
+    pool = dev_episodes(100, args.first_house, seed=0) if not args.colour else default_episodes(100, args.first_house)
     chosen = [ep for ep in pool if has_lookalike(house_for_episode(ep), ep)][:args.episodes]
     if args.only:
         chosen = [chosen[int(i)] for i in args.only.split(",")]
@@ -212,7 +233,7 @@ def main(argv=None) -> int:
                 atomic_write_bytes(path, json.dumps(o, indent=1).encode())
                 print(json.dumps({"deduced": name, "from": args.pair}), flush=True)
                 continue
-        r = run(ep, args.look_again, args.max_steps, overrides)
+        r = run(ep, args.look_again, args.max_steps, overrides, colour=args.colour)
         atomic_write_bytes(path, json.dumps(r, indent=1).encode())
         if other and not os.path.exists(other) and args.look_again == 0 and r["ambiguous_steps"] == 0:
             o = dict(r, look_again=1, deduced_from=args.out)  # the look-again run would be the same

@@ -75,7 +75,9 @@ def test_look_again_config_and_cli_flags():
 
     from splatsearch.cli_config import add_config_flags, config_overrides
 
-    assert AgentConfig().look_again == 0  # opt-in
+    cfg0 = AgentConfig()  # stop 45's defaults: confirm marginal matches, look again only after a refusal
+    assert (cfg0.look_again, cfg0.look_again_after_refute, cfg0.confirm_below, cfg0.confirm_by) == (
+        1, True, 18.0, "new_frame")
     for bad in ({"look_again": -1}, {"look_again_steps": 0}, {"look_again_distance": 0.0}):
         with pytest.raises(ValueError, match="look_again"):
             AgentConfig(**bad)
@@ -112,7 +114,7 @@ class _Planner:
 
 def test_policy_walks_to_the_viewpoint_faces_the_object_captures_and_verifies_again(episode):
     ep, env = episode
-    cfg = AgentConfig(colour_cue=False, look_again=1, look_again_steps=10)
+    cfg = AgentConfig(colour_cue=False, look_again=1, look_again_steps=10, look_again_after_refute=False)
     agent = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
                              ep.start, config=cfg)
     db, policy = agent.db, agent.policy
@@ -148,9 +150,9 @@ def test_policy_walks_to_the_viewpoint_faces_the_object_captures_and_verifies_ag
     assert policy.decide(c, 20, capture=capture)[1] != "look_again"
     assert policy.look_log[-1]["outcome"] == "timeout" and policy.looks[e] == 1
     assert policy.decide(c, 21, capture=capture)[1] != "look_again"
-    # look_again 0 (the default): no trips
+    # look_again 0: no trips
     agent0 = SplatSearchAgent(env.K, env.width, env.height, np.zeros((240, 320, 3), np.float32), ep.goal_class,
-                              ep.start, config=AgentConfig(colour_cue=False))
+                              ep.start, config=AgentConfig(colour_cue=False, look_again=0))
     e0 = agent0.db.add(ep.goal_class, [c[0] + 3.0, c[1], 0.5], c).entry_id
     agent0.db.record_match(e0, 11.0, 0, cfg.tau_m)
     agent0.explorer.planner = lambda: _Planner(agent0.explorer.spec)
@@ -179,7 +181,8 @@ def test_episode_with_look_again_takes_the_extra_frame_and_verifies_again(episod
     monkeypatch.setattr(verification, "verify_object", fake_verify)
     monkeypatch.setattr(verification, "build_local_map", lambda frames, *a, **k: list(frames))
     captured_viewmats = []
-    cfg = AgentConfig(colour_cue=False, look_again=1, map_every=4, match_observations=False)
+    cfg = AgentConfig(colour_cue=False, look_again=1, look_again_after_refute=False, map_every=4,
+                      match_observations=False)
     gf = sim.goal_image(env, ep)
     obs = env.reset(ep.start)
     agent = SplatSearchAgent(env.K, env.width, env.height, gf.rgb, ep.goal_class, obs.pose, config=cfg,
@@ -275,15 +278,19 @@ def test_confirm_trip_keeps_a_match_the_new_frame_confirms_and_is_off_by_default
     n = len(policy.look_log)
     policy.decide(facing, 2, capture=capture)
     assert len(policy.look_log) == n
-    # a match at or above confirm_below needs no trip; with confirm_below 0 (the default) none does
+    # a match at or above confirm_below needs no trip; with confirm_below 0 (off) none does
     agent.db.record_match(e, 18.0, 0, agent.cfg.tau_m)
     policy.confirmed.clear()
     assert not policy.needs_confirm(agent.db[e])
-    agent0, e0, _, _ = _marginal_match(ep, env)
-    assert AgentConfig().confirm_below == 0 and not agent0.policy.needs_confirm(agent0.db[e0])
+    agent0, e0, _, _ = _marginal_match(ep, env, confirm_below=0.0)
+    assert not agent0.policy.needs_confirm(agent0.db[e0])
     assert agent0.policy.decide(facing, 1, capture=capture)[1] != "confirm"
     with pytest.raises(ValueError, match="confirm_below"):
-        AgentConfig(confirm_below=12.0)
+        AgentConfig(confirm_below=-1.0)
+    # at or below tau_m the band is empty: off (so that raising tau_m keeps a valid config)
+    agent20, e20, _, _ = _marginal_match(ep, env, tau_m=20.0)
+    agent20.db.record_match(e20, 20.0, 0, 20.0)
+    assert agent20.policy.goal_candidates() and not agent20.policy.needs_confirm(agent20.db[e20])
 
 
 def test_rival_check_looks_at_ambiguous_entries_before_a_marginal_match_stands(episode):
@@ -322,3 +329,19 @@ def test_rival_check_looks_at_ambiguous_entries_before_a_marginal_match_stands(e
     assert policy.goal_candidates()[0].id == amb and policy.target_entry == amb and status == "goal_reached"
     with pytest.raises(ValueError, match="confirm_by"):
         AgentConfig(confirm_by="vote")
+
+
+def test_confirm_cli_flags_have_help():
+    import argparse
+
+    from splatsearch.cli_config import add_config_flags, config_overrides
+
+    ap = argparse.ArgumentParser()
+    add_config_flags(ap, AgentConfig, "agent")
+    args = ap.parse_args(["--agent.confirm_below", "20", "--agent.confirm_by", "rivals",
+                          "--agent.look_again_after_refute", "off"])
+    assert config_overrides(args, "agent") == {"confirm_below": 20.0, "confirm_by": "rivals",
+                                               "look_again_after_refute": False}
+    helps = {a.dest: a.help for a in ap._actions}
+    assert "marginal" in helps["agent.confirm_below"] and "rivals" in helps["agent.confirm_by"]
+    assert "refuted" in helps["agent.look_again_after_refute"]

@@ -83,7 +83,7 @@ class AgentConfig:
     grows with its mask up to ``colour_full_px`` pixels. Objects the cue already decides get no
     feature matching (it could not change the decision).
 
-    Look again (issue 23, opt-in): ``look_again`` is the number of new viewpoints from which an
+    Look again (issue 23): ``look_again`` is the number of new viewpoints from which an
     ambiguous goal-class object is looked at again (0: none); ambiguous means at least one NVSM
     run, not the goal, and a best count e_max of at least ``look_again_low`` but below tau_m. The
     robot walks (FMM) to a free cell about ``look_again_distance`` m from the object, reachable
@@ -93,21 +93,23 @@ class AgentConfig:
     than ``look_again_steps`` steps is abandoned (it still counts as one of the object's views);
     the moves are episode steps, and an object taken for the goal ends the look-again.
 
-    Confirm (issue 23, opt-in): with ``confirm_below`` > tau_m, an object taken for the goal by
-    feature matches alone whose e_max is in [tau_m, ``confirm_below``) (a marginal match) is looked
-    at once from another side (the same viewpoint choice and trip as the look-again step) before
-    the robot walks to it. The new frame's count decides, not the running maximum: the largest
-    count recorded for the object in the capture step (the crop match of that frame and the NVSM
-    run that includes it) must reach tau_m on its own, or the match is refuted: no longer taken
-    for the goal (unless its e_max later reaches ``confirm_below``; the end-of-exploration fallback
-    still ranks it by e_max). A confirm trip that finds no viewpoint, no path or runs
-    past ``look_again_steps`` leaves the match as it was. ``confirm_by`` "rivals" checks a marginal
-    match another way: no trip to it, but while it is the best goal candidate the ambiguous
-    objects (look-again band, ``look_again`` views each) get their look-again trips first, since
-    one of them may be the goal and overtake it; with none left (or none reachable) the match
-    stands. ``look_again_after_refute``: look-again
-    trips (``look_again`` > 0) begin only once a confirm trip has refuted a match in this episode
-    (a look-alike is about, so the ambiguous objects are worth a trip).
+    Confirm (issue 23, the default since stop 45, when its dev rule passed, docs/results.md).
+    ``confirm_below`` is the upper end (inliers, camera-image scale) of the marginal matches that
+    get a confirm trip, off at or below tau_m (an absolute count, so raising tau_m to 18 or more
+    turns it off). An object taken for the goal by feature matches alone whose e_max is in
+    [tau_m, confirm_below) is looked at once from another side (the viewpoint choice and trip of
+    the look-again step) before the robot walks to it. The new frame's count decides, not the
+    running maximum, which keeps every run's best and could never take a false match back. The
+    largest count recorded for the object in the capture step (the crop match of that frame and
+    the NVSM run that includes it) must reach tau_m on its own, or the match is refuted, no longer
+    taken for the goal unless its e_max later reaches confirm_below, while the end-of-exploration
+    fallback still ranks it by e_max. A confirm trip that finds no viewpoint, no path or runs past
+    the look-again step limit leaves the match as it was. ``confirm_by`` is "new_frame" (the trip
+    above) or "rivals" (no trip to the marginal match, but while it is the best goal candidate the
+    ambiguous objects get their look-again trips first, since one may be the goal and overtake it,
+    and with none left the match stands). ``look_again_after_refute`` lets look-again trips begin
+    only once a confirm trip has refuted a match in the episode (a look-alike is about, so the
+    ambiguous objects are worth a trip).
 
     Planning: ``alpha``, ``beta``, ``delta``: eq 19 weights. ``stop_margin`` (m): stop this close
     to a goal object's extent. ``goal_patience``: reachable steps without getting 0.1 m closer
@@ -150,13 +152,13 @@ class AgentConfig:
     goal_patience: int = 60
     identify_every_frame: bool = True
     verify_steps: int = 6
-    look_again: int = 0
+    look_again: int = 1
     look_again_low: float = 9.0
     look_again_distance: float = 1.6
     look_again_max_path: float = 8.0
     look_again_steps: int = 40
-    look_again_after_refute: bool = False
-    confirm_below: float = 0.0
+    look_again_after_refute: bool = True
+    confirm_below: float = 18.0
     confirm_by: str = "new_frame"
     colour_cue: bool = True
     tau_a: float = 0.45
@@ -183,8 +185,8 @@ class AgentConfig:
                              "look_again_max_path > 0 and look_again_low >= 0")
         if self.confirm_by not in ("new_frame", "rivals"):
             raise ValueError(f"confirm_by must be 'new_frame' or 'rivals', got {self.confirm_by!r}")
-        if not (self.confirm_below == 0 or self.confirm_below > self.tau_m):
-            raise ValueError(f"confirm_below must be 0 (off) or above tau_m = {self.tau_m}, got {self.confirm_below}")
+        if not self.confirm_below >= 0:
+            raise ValueError(f"confirm_below must be >= 0 (at or below tau_m: off), got {self.confirm_below}")
         if not (0 <= self.colour_veto <= self.tau_a <= 1) or self.colour_min_views < 1 \
                 or self.colour_full_px < 1:
             raise ValueError("need 0 <= colour_veto <= tau_a <= 1, colour_min_views >= 1 and "

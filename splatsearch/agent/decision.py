@@ -11,14 +11,15 @@
    with the most evidence (colours, then e_max, then the crop cosine), chosen again every step
    with some hysteresis, since the way there shows the other objects again.
 
-With ``look_again`` > 0 (opt-in), an object whose NVSM left it ambiguous
+With ``look_again`` > 0, an object whose NVSM left it ambiguous
 (:meth:`Verifier.is_ambiguous`) comes between 1 and 2-4: while nothing is taken for the goal, the
 robot walks to a viewpoint that sees what the object's local map lacks
 (:func:`~splatsearch.agent.look_again.choose_viewpoint`), turns to face the object, and the
 agent's ``capture`` callback adds that frame to the object's observations and runs its NVSM
 again (``look_again`` views per object at most, ``look_again_steps`` steps per trip).
 
-With ``confirm_below`` > tau_m (opt-in), an entry taken for the goal by a marginal feature match
+With ``confirm_below`` > tau_m (the default since stop 45, with look-again trips only after a
+refusal), an entry taken for the goal by a marginal feature match
 (e_max in [tau_m, ``confirm_below``), colours undecided) gets one confirm trip of the same kind
 before the robot walks to it; the count of the frame taken there (not the running maximum) must
 reach tau_m again, or the entry is refuted (``refuted``): a look-alike that passed by a little
