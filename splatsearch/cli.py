@@ -96,10 +96,32 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``splatsearch map --preset``: the optimisation budget and keyframing. ``quality`` is
+#: ``benchmarks/slam_eval.py``'s real-sensor recipe (TUM fr1/xyz at 320x240, ground-truth poses:
+#: 24.05 dB with each frame's exposure applied, ~7.7 CPU-s a frame; docs/mapping.md); every frame
+#: is a keyframe there, which suits sequences of up to a few hundred frames.
+MAP_PRESETS: dict[str, dict[str, int | None]] = {
+    "fast": {"iters": 15, "first_iters": None, "stride": 3, "keyframe_every": 5, "refine": 0},
+    "quality": {"iters": 30, "first_iters": 60, "stride": 2, "keyframe_every": 1, "refine": 500},
+}
+
+
+def resolve_map_preset(args: argparse.Namespace) -> argparse.Namespace:
+    """Fill the ``map`` flags left unset (None) from ``MAP_PRESETS[args.preset]``; flags given
+    explicitly win. Returns ``args`` (changed in place; calling it twice changes nothing)."""
+    for key, val in MAP_PRESETS[getattr(args, "preset", None) or "fast"].items():
+        if getattr(args, key, None) is None:
+            setattr(args, key, val)
+    return args
+
+
 def map_mapper_config(args: argparse.Namespace, real: bool) -> MapperConfig:
-    """The :class:`~splatsearch.mapper.MapperConfig` of ``splatsearch map`` from its flags, before
-    ``--mapper.FIELD`` overrides; ``real``: a dataset (``--data``), not a simulator walk."""
+    """The :class:`~splatsearch.mapper.MapperConfig` of ``splatsearch map`` from its flags (and
+    ``--preset``), before ``--mapper.FIELD`` overrides; ``real``: a dataset (``--data``), not a
+    simulator walk."""
     from splatsearch.mapper import MapperConfig
+
+    resolve_map_preset(args)
 
     mcfg = MapperConfig(iters=args.iters, stride=args.stride, isotropic=args.isotropic,
                         pixel_scale=args.pixel_scale if args.pixel_scale else float(args.stride if real else 1),
@@ -448,13 +470,21 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                         "(~15 ms later) with the ground-truth motion; not with --track")
     m.add_argument("--width", type=int, default=320, help="simulator image width in pixels (default 320)")
     m.add_argument("--height", type=int, default=240, help="simulator image height in pixels (default 240)")
-    m.add_argument("--iters", type=int, default=15, help="mapping Adam steps per frame (default 15)")
-    m.add_argument("--first-iters", type=int, default=None,
-                   help="mapping steps for the first frame (default: --iters)")
-    m.add_argument("--refine", type=int, default=0, help="mapping steps over the keyframes after the last frame "
-                                                         "(default 0)")
-    m.add_argument("--keyframe-every", type=int, default=5,
-                   help="every N-th mapped frame becomes a keyframe (default 5; 1 for short sequences)")
+    m.add_argument("--preset", default="fast", choices=sorted(MAP_PRESETS),
+                   help="optimisation budget: 'fast' (15 steps a frame, densify every 3rd pixel, a keyframe "
+                        "every 5 frames, no final refinement) or 'quality' (the real-sensor benchmark's recipe: "
+                        "30 steps a frame, 60 for the first, every 2nd pixel, every frame a keyframe, 500 "
+                        "refinement steps; about 1.6x the CPU time on 10 TUM frames); the flags below win "
+                        "(default: fast)")
+    m.add_argument("--iters", type=positive_int, default=None,
+                   help="mapping Adam steps per frame (default: 15; --preset quality: 30)")
+    m.add_argument("--first-iters", type=positive_int, default=None,
+                   help="mapping steps for the first frame (default: --iters; --preset quality: 60)")
+    m.add_argument("--refine", type=int, default=None, help="mapping steps over the keyframes after the last frame "
+                                                            "(default: 0; --preset quality: 500)")
+    m.add_argument("--keyframe-every", type=positive_int, default=None,
+                   help="every N-th mapped frame becomes a keyframe (default: 5; --preset quality: 1; "
+                        "1 for short sequences)")
     from splatsearch.tracking_args import add_track_args
 
     add_track_args(m)
@@ -465,7 +495,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="fit an affine colour (gain, bias) per frame, for cameras with auto-exposure; "
                         "summary.json adds the keyframes' PSNR with it applied (default: on for --data, "
                         "off for the simulator)")
-    m.add_argument("--stride", type=int, default=3, help="densify every stride-th pixel (default 3)")
+    m.add_argument("--stride", type=positive_int, default=None,
+                   help="densify every stride-th pixel (default: 3; --preset quality: 2)")
     m.add_argument("--pixel-scale", type=float, default=None,
                    help="size of new Gaussians in pixels (default: --stride for datasets, 1 for the simulator)")
     m.add_argument("--depth-range", type=float, nargs=2, default=(0.0, float("inf")), metavar=("MIN", "MAX"),
