@@ -73,23 +73,35 @@ def test_equal_images_are_retrieved_by_person_state():
     keys, acts = jnp.asarray(db.key_matrix), jnp.asarray(db.actions)
     got = {}
     for name, s in {"head_on": [5.6, 0.0, 1.1, 0.2], "crossing": [6.2, 0.45, 0.1, 2.7]}.items():
-        pen, ok = person_penalty(db, np.asarray(s, np.float32), cfg)
+        pen, ok, _ = person_penalty(db, np.asarray(s, np.float32), cfg)
         j, _ = retrieve(keys, acts, jnp.asarray(e), 1, 0.05, None, jnp.asarray(pen))
         got[name] = int(j)
         assert ok[int(j)]
     assert ACTIONS[db.actions[got["head_on"]]] == "keep_right"
     assert ACTIONS[db.actions[got["crossing"]]] == "straight"
     # a person state far from both keys still ranks them but fails the person gate
-    pen, ok = person_penalty(db, np.array([1.0, -1.0, -1.0, -1.0], np.float32), cfg)
+    pen, ok, _ = person_penalty(db, np.array([1.0, -1.0, -1.0, -1.0], np.float32), cfg)
     assert not ok[2] and not ok[3] and ok[0] and ok[1]
     # off (the thesis' image-only key) or without a person state: no penalty, every entry ok
     for c, s in ((dataclasses.replace(cfg, person_key=False), np.zeros(4, np.float32)), (cfg, None)):
-        pen, ok = person_penalty(db, s, c)
+        pen, ok, _ = person_penalty(db, s, c)
         assert not np.any(pen) and np.all(ok)
 
 
 def test_nobody_ahead_matches_a_view_entry_with_nobody_ahead_only():
     db = _equal_image_db()
     db = add_view_entries(db, np.eye(1, 8, 5), np.eye(1, 8, 6), [STRAIGHT], np.full((1, 4), np.nan))
-    pen, ok = person_penalty(db, np.full(4, np.nan, np.float32), OliviaConfig(person_key=True))
+    pen, ok, _ = person_penalty(db, np.full(4, np.nan, np.float32), OliviaConfig(person_key=True))
     assert ok[4] and pen[4] == 0 and not ok[2] and not ok[3]
+
+
+def test_person_view_gate_lets_a_matched_view_entry_rank_first_and_opens_its_gate():
+    db = _equal_image_db()
+    cfg = OliviaConfig(person_key=True, person_view_gate=0.5)
+    s = np.array([5.6, 0.0, 1.1, 0.2], np.float32)
+    pen, ok, gate = person_penalty(db, s, cfg)
+    assert gate[2] == pytest.approx(0.5) and gate[3] == pytest.approx(cfg.view_gate) and gate[0] == pytest.approx(cfg.text_gate)
+    assert pen[2] < -0.9 and ok[2] and not ok[3]
+    # nobody seen: no entry is person-matched, the gates are the usual ones
+    _, _, gate = person_penalty(db, np.full(4, np.nan, np.float32), cfg)
+    assert gate[2] == pytest.approx(cfg.view_gate)

@@ -97,6 +97,9 @@ class OliviaConfig:
     person_key: bool = False
     person_weight: float = 0.05  # ranking: image cosine minus this x the scaled squared person distance d2
     person_gate: float = 1.0  # a view entry's E_T is used only when d2 <= this (and the image cosine passes view_gate)
+    # > 0: a view entry whose person key matches the perceived person (both seen, d2 <= person_gate)
+    # ranks above every other entry and needs only this image cosine (0: view_gate as any view entry)
+    person_view_gate: float = 0.0
 
     def __post_init__(self):
         for name in ("cross_tau", "people_react"):
@@ -141,7 +144,7 @@ def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau
 
 
 @partial(jax.jit, static_argnames=("cfg", "use_image", "use_lidar", "use_text"))
-def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, is_view, db_actions, image, points, valid, goal, prior,
+def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, gates, db_actions, image, points, valid, goal, prior,
           penalty, person_ok, cfg: OliviaConfig, use_image: bool, use_lidar: bool, use_text: bool):
     e_i = normalize(SCCLIP(cfg.clip).apply({"params": clip_p}, image[None], method=SCCLIP.encode_image))
     # the TPN reads E_I from the encoder it was trained with (an LLU update moves only retrieval's)
@@ -152,7 +155,7 @@ def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, is_view, db_actions, image
     sim = keys[j] @ e_i[0]
     # a caption retrieved with low similarity describes another scene (its action is right about
     # half the time on held-out views); the TSM then ranks without E_T, as trained with text dropout
-    use_text = jnp.asarray(use_text) & (sim >= jnp.where(is_view[j], cfg.view_gate, cfg.text_gate)) & person_ok[j]
+    use_text = jnp.asarray(use_text) & (sim >= gates[j]) & person_ok[j]
     trajs, scores = TPN(cfg.tpn).apply({"params": tpn_p}, e_i_tpn, points[None], valid[None], goal[None],
                                        jnp.full((1,), use_image), jnp.full((1,), use_lidar), with_scores=True)
     logits = TSM(cfg.tsm).apply({"params": tsm_p}, e_t, trajs, jnp.full((1,), use_text))
@@ -160,24 +163,33 @@ def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, is_view, db_actions, image
     return trajs[0], logits[0], j, e_i[0], votes, sim, use_text
 
 
-def person_penalty(db: TextDB, person: np.ndarray | None, cfg: OliviaConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(penalty (M,), ok (M,) bool) of D_T's entries for the perceived person state ``person``
+def person_penalty(db: TextDB, person: np.ndarray | None, cfg: OliviaConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(penalty (M,), ok (M,) bool, image-cosine gate (M,)) of D_T's entries for the perceived person state ``person``
     (PERSON_DIM,) (:func:`~splatsearch.social.olivia.person_key.person_state`; NaN: nobody ahead).
     Only view entries with ``db.persons`` take part, and only with ``cfg.person_key``: their
     ranking loses ``cfg.person_weight`` x d2 (capped at 100) and they pass the gate only when
     d2 <= ``cfg.person_gate``; nobody ahead matches nobody ahead (d2 0) and no person state
-    (inf). Every other entry: penalty 0, ok."""
+    (inf). Every other entry: penalty 0, ok. The gate is ``view_gate`` for view entries and
+    ``text_gate`` for the others; with ``cfg.person_view_gate`` > 0 a view entry matched by a
+    person actually seen (d2 <= person_gate) gets that gate and a penalty lowered by 1 (it ranks
+    first: image cosines lie in [-1, 1])."""
     m = len(db.captions)
-    if not cfg.person_key or db.persons is None or person is None:
-        return np.zeros(m, np.float32), np.ones(m, bool)
     is_view = np.any(db.key_matrix != db.embeddings, axis=1)
+    gate = np.where(is_view, cfg.view_gate, cfg.text_gate).astype(np.float32)
+    if not cfg.person_key or db.persons is None or person is None:
+        return np.zeros(m, np.float32), np.ones(m, bool), gate
     keys = np.asarray(db.persons, np.float32)
     s = np.asarray(person, np.float32)
     d2 = person_distance2(s, keys)
     none_both = np.all(np.isnan(keys), 1) & bool(np.all(np.isnan(s)))
     d2 = np.where(none_both, 0.0, d2)
     pen = np.where(is_view, cfg.person_weight * np.minimum(d2, 100.0), 0.0).astype(np.float32)
-    return pen, ~is_view | (d2 <= cfg.person_gate)
+    ok = ~is_view | (d2 <= cfg.person_gate)
+    if cfg.person_view_gate > 0 and not np.all(np.isnan(s)):
+        matched = is_view & ~np.all(np.isnan(keys), 1) & (d2 <= cfg.person_gate)
+        pen = np.where(matched, pen - 1.0, pen).astype(np.float32)
+        gate = np.where(matched, cfg.person_view_gate, gate).astype(np.float32)
+    return pen, ok, gate
 
 
 def select_logits(tsm_logits: jax.Array, tpn_scores: jax.Array, score_weight: float) -> jax.Array:
@@ -226,8 +238,6 @@ class OliviaNav:
         self.params, self.db, self.cfg, self.variant = params, db, cfg, variant
         self._db = jnp.asarray(db.embeddings)
         self._keys = jnp.asarray(db.key_matrix)
-        # entries keyed by a view (an LLU update's) are gated on image-to-image similarity
-        self._is_view = jnp.asarray(np.any(db.key_matrix != db.embeddings, axis=1))
         self._db_actions = jnp.asarray(db.actions, jnp.int32)
 
     def with_variant(self, variant: str) -> "OliviaNav":
@@ -242,9 +252,10 @@ class OliviaNav:
         v = self.variant
         prior = jnp.zeros(N_VOTES, F32) if prior is None else jnp.asarray(prior, F32)
         p = self.params
-        pen, ok = person_penalty(self.db, person, self.cfg)
+        # entries keyed by a view (an LLU update's) are gated on image-to-image similarity
+        pen, ok, gates = person_penalty(self.db, person, self.cfg)
         trajs, logits, j, e_i, votes, sim, used = _plan(p["clip"], p.get("clip_tpn"), p["tpn"], p["tsm"], self._db, self._keys,
-                                                  self._is_view, self._db_actions, jnp.asarray(image),
+                                                  jnp.asarray(gates), self._db_actions, jnp.asarray(image),
                                                   jnp.asarray(points, F32), jnp.asarray(points_valid),
                                                   jnp.asarray(goal, F32), prior, jnp.asarray(pen), jnp.asarray(ok),
                                                   self.cfg, v != "no_image",

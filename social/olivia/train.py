@@ -169,7 +169,7 @@ def config_to_meta(cfg: OliviaConfig) -> dict:
             "arrive_radius": cfg.arrive_radius, "oncoming_yield": cfg.oncoming_yield, "cross_tau": cfg.cross_tau,
             "people_react": cfg.people_react, "oncoming_time": cfg.oncoming_time, "route_fallback": cfg.route_fallback, "route_berth": cfg.route_berth,
             "perceived_berth": cfg.perceived_berth, "person_key": cfg.person_key, "person_weight": cfg.person_weight,
-            "person_gate": cfg.person_gate}
+            "person_gate": cfg.person_gate, "person_view_gate": cfg.person_view_gate}
 
 
 def config_from_meta(meta: dict) -> OliviaConfig:
@@ -185,7 +185,7 @@ def config_from_meta(meta: dict) -> OliviaConfig:
                         score_weight=float(c.get("score_weight", 1.0 if t["score"] else 0.0)),
                         **{k: float(c[k]) for k in ("consistency", "safety", "safety_margin", "text_gate", "view_gate", "pass_right", "arrive_radius",
                                                     "cross_tau", "people_react", "oncoming_time", "route_berth",
-                                                    "perceived_berth", "person_weight", "person_gate")
+                                                    "perceived_berth", "person_weight", "person_gate", "person_view_gate")
                            if k in c},
                         **{k: bool(c[k]) for k in ("oncoming_yield", "route_fallback", "person_key") if k in c})
 
