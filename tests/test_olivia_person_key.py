@@ -84,8 +84,9 @@ def test_equal_images_are_retrieved_by_person_state():
     assert not ok[2] and not ok[3] and ok[0] and ok[1]
     # off (the thesis' image-only key) or without a person state: no penalty, every entry ok
     for c, s in ((dataclasses.replace(cfg, person_key=False), np.zeros(4, np.float32)), (cfg, None)):
-        pen, ok, _ = person_penalty(db, s, c)
+        pen, ok, gate = person_penalty(db, s, c)
         assert not np.any(pen) and np.all(ok)
+        np.testing.assert_allclose(gate, [c.text_gate] * 2 + [c.view_gate] * 2)
 
 
 def test_nobody_ahead_matches_a_view_entry_with_nobody_ahead_only():
