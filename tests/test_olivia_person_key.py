@@ -106,3 +106,41 @@ def test_person_view_gate_lets_a_matched_view_entry_rank_first_and_opens_its_gat
     # nobody seen: no entry is person-matched, the gates are the usual ones
     _, _, gate = person_penalty(db, np.full(4, np.nan, np.float32), cfg)
     assert gate[2] == pytest.approx(cfg.view_gate)
+
+
+@pytest.mark.slow  # XLA compilation of the full planner (default networks) on 2 cores
+def test_planner_with_equal_view_images_follows_the_person_state():
+    """The whole plan cycle: two view entries keyed by the very same E_I (this view's), captioned
+    keep right (head-on person) and straight (crossing person); the perceived person decides which
+    caption the planner retrieves and uses, and with the key off the first one is taken."""
+    import jax
+
+    from splatsearch.social.olivia import sc_clip, tpn, tsm
+    from splatsearch.social.olivia import train as ot
+    from splatsearch.social.olivia.features import GOAL_DIM
+    from splatsearch.social.olivia.lidar import N_POINTS
+    from splatsearch.social.olivia.llu import build_text_db
+    from splatsearch.social.olivia.planner import OliviaNav
+    from splatsearch.social.olivia.render import IMG_H, IMG_W
+
+    cfg = OliviaConfig(person_key=True)
+    k = jax.random.split(jax.random.PRNGKey(0), 3)
+    params = {"clip": sc_clip.init_sc_clip(k[0], cfg.clip), "tpn": tpn.init_tpn(k[1], cfg.tpn),
+              "tsm": tsm.init_tsm(k[2], cfg.tsm)}
+    db = build_text_db(params["clip"], ["the space is open you should continue straight"], cfg.clip)
+    rng = np.random.default_rng(0)
+    obs = (rng.integers(0, 255, (IMG_H, IMG_W, 3)).astype(np.uint8), rng.normal(size=(N_POINTS, 4)).astype(np.float32),
+           np.ones(N_POINTS, bool), rng.normal(size=GOAL_DIM).astype(np.float32))
+    e_i = ot.encode_all_images(params["clip"], obs[0][None], cfg.clip)
+    caps = [RIGHT, STRAIGHT]
+    persons = np.array([[6.0, 0.05, 1.0, 0.3], [6.0, 0.5, 0.0, 2.9]], np.float32)
+    dbv = add_view_entries(db, np.repeat(e_i, 2, 0), ot.encode_all_texts(params["clip"], caps, cfg.clip), caps, persons)
+    planner = OliviaNav(params, dbv, cfg)
+    head_on = planner.plan(*obs, person=np.array([5.6, 0.0, 1.1, 0.2], np.float32))
+    crossing = planner.plan(*obs, person=np.array([6.2, 0.45, 0.1, 2.7], np.float32))
+    assert head_on.caption == RIGHT and head_on.text_used
+    assert crossing.caption == STRAIGHT and crossing.text_used
+    # a person far from both keys: the entry is still ranked but E_T is not used
+    assert not planner.plan(*obs, person=np.array([1.0, -1.0, -1.0, -1.0], np.float32)).text_used
+    off = OliviaNav(params, dbv, dataclasses.replace(cfg, person_key=False)).plan(*obs, person=persons[1])
+    assert off.caption == RIGHT  # image-only key: the two entries tie and the first is taken
