@@ -110,7 +110,7 @@ def rescore(planner, rec: dict) -> dict:
     from splatsearch.social.olivia.selection import selection_scores
 
     obs = rec["obs"]
-    res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal)
+    res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal, person=rec.get("person"))
     parts = selection_scores(res.logits, rec["cand"], rec["pose"], rec["prev_world"], rec["elapsed"],
                              rec["seen_people"], rec["seen_vel"], rec["clearance"], planner.cfg)
     return {"index": int(np.argmax(parts["score"])), "score": parts["score"], "logits": res.logits,
@@ -326,8 +326,9 @@ def main(argv=None) -> int:
             with open(args.buffer_cache, "rb") as f:
                 d = pickle.load(f)
             buf = LLUBuffer(len(d["images"]))
-            for im, ob, on, ep in zip(d["images"], d["observations"], d["oncoming"], d["episodes"]):
-                buf.add(im, None, ob, on, ep)
+            pers = d.get("persons", [None] * len(d["images"]))  # caches from before the person key have none
+            for im, ob, on, ep, ps in zip(d["images"], d["observations"], d["oncoming"], d["episodes"], pers):
+                buf.add(im, None, ob, on, ep, ps)
             captions, used = d["captions"], d["used"]
         else:
             buf, used = fill_buffer(planner, args.scenario, parse_seeds(args.adapt_seeds), args.size, args.buffer_every,
@@ -336,7 +337,7 @@ def main(argv=None) -> int:
             if args.buffer_cache:
                 with open(args.buffer_cache, "wb") as f:
                     pickle.dump({"images": buf.images, "observations": buf.observations, "oncoming": buf.oncoming,
-                                 "episodes": buf.episodes, "captions": captions, "used": used}, f)
+                                 "episodes": buf.episodes, "persons": buf.persons, "captions": captions, "used": used}, f)
         print(f"buffer: {len(buf.images)} views from {used} ({time.time() - t0:.0f} s)", flush=True)
         after, losses = apply_llu(planner, buf, captions, LLUConfig(size=args.size))
         n0 = len(planner.db.captions)

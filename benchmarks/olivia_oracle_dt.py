@@ -6,6 +6,7 @@ LLU update acting through E_T could do with this TPN / TSM / selection: if it do
 309, no buffer or retrieval fix will.
 
 Usage: python benchmarks/olivia_oracle_dt.py --checkpoint T0/olivia.npz --seeds 309,304 --out OUT.json [--baseline-cache DIR]
+[--after-seen]
 
 Only for development seeds: it runs the privileged captioner on the evaluated episode itself.
 The planner module's ``observe``, ``step_unicycle`` and ``pedsim`` are wrapped (in this process only)
@@ -33,6 +34,9 @@ ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 ap.add_argument("--checkpoint", required=True)
 ap.add_argument("--seeds", default="309", help="doorway dev seeds, comma list (default 309)")
 ap.add_argument("--baseline-cache", default=None)
+ap.add_argument("--after-seen", action="store_true", help="the oracle entry only from the first plan at which the "
+                "robot perceives someone ahead (person_key.person_state): the bound of any retrieval keyed by "
+                "the robot's perception of people")
 ap.add_argument("--out", required=True)
 args = ap.parse_args()
 ck, out, seeds = args.checkpoint, args.out, [int(s) for s in args.seeds.split(",")]
@@ -72,16 +76,24 @@ class Oracle:
         self.cfg, self.variant, self.scn = base.cfg, base.variant, scn
         self.shift = reference_shift_of(scn, cache)
         self.log = []
+        self.seen = False
 
-    def plan(self, image, points, points_valid, goal, prior=None):
+    def plan(self, image, points, points_valid, goal, prior=None, person=None):
         scn, t = self.scn, state["t"]
+        self.seen = self.seen or (person is not None and not np.all(np.isnan(person)))
+        if args.after_seen and not self.seen:
+            res = base.plan(image, points, points_valid, goal, prior, person)
+            self.log.append({"t": t, "y": round(float(state["pose"][1]), 3), "caption_action": "none",
+                             "used": bool(res.text_used), "tsm_best": int(res.index),
+                             "tsm_best_action": ACTIONS[action_of(res.trajs[res.index])]})
+            return res
         act = expert_action(scn, state["pose"], state["cmd"], state["peds"], t, offset=self.shift(t))
         sc = caption_scene(scn, state["pose"], np.asarray(state["peds"].pos), np.asarray(state["peds"].vel), act)
         c = cap.caption(image, sc).long
         img = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)[None]
         db = add_view_entries(base.db, encode_all_images(clip, img, base.cfg.clip),
                               encode_all_texts(clip, [c], base.cfg.clip), [c])
-        res = pm.OliviaNav(base.params, db, base.cfg, base.variant).plan(image, points, points_valid, goal, prior)
+        res = pm.OliviaNav(base.params, db, base.cfg, base.variant).plan(image, points, points_valid, goal, prior, person)
         self.log.append({"t": t, "y": round(float(state["pose"][1]), 3), "caption_action": ACTIONS[act],
                          "used": bool(res.text_used), "tsm_best": int(res.index),
                          "tsm_best_action": ACTIONS[action_of(res.trajs[res.index])]})

@@ -21,6 +21,7 @@ import numpy as np
 import optax
 
 from .captions import LONG_LEN, action_from_text
+from .person_key import NO_PERSON, PERSON_DIM
 from .sc_clip import SCCLIP, SCCLIPConfig, encode_texts, normalize, soft_targets
 from .tokenizer import DEFAULT_TOKENIZER, Tokenizer
 
@@ -49,12 +50,17 @@ class TextDB:
     ``keys`` (N, D) unit, optional: what E_I is compared with to retrieve each entry. None (the
     thesis): the text embeddings themselves. An LLU update (:func:`add_view_entries`) adds its
     buffer's captions keyed by the E_I of the views they describe, so that a view like one the
-    update was given retrieves that caption at an image-to-image similarity near 1."""
+    update was given retrieves that caption at an image-to-image similarity near 1.
+
+    ``persons`` (N, PERSON_DIM), optional: the perceived-person part of the key of each view
+    entry (:func:`~splatsearch.social.olivia.person_key.person_state`; NaN rows: nobody ahead, and
+    every row of an entry that is not a view's), used with ``OliviaConfig.person_key``."""
 
     embeddings: np.ndarray
     captions: list
     actions: np.ndarray
     keys: np.ndarray | None = None
+    persons: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.embeddings)
@@ -63,6 +69,8 @@ class TextDB:
                              f"{len(self.captions)} captions, {len(self.actions)} actions")
         if self.keys is not None and np.shape(self.keys) != np.shape(self.embeddings):
             raise ValueError(f"D_T keys {np.shape(self.keys)} must match its embeddings {np.shape(self.embeddings)}")
+        if self.persons is not None and np.shape(self.persons) != (n, PERSON_DIM):
+            raise ValueError(f"D_T person keys {np.shape(self.persons)} must be ({n}, {PERSON_DIM})")
 
     @property
     def key_matrix(self) -> np.ndarray:
@@ -77,16 +85,24 @@ class TextDB:
         return i, self.embeddings[i]
 
 
-def add_view_entries(db: TextDB, e_img: np.ndarray, e_text: np.ndarray, captions: list) -> TextDB:
+def add_view_entries(db: TextDB, e_img: np.ndarray, e_text: np.ndarray, captions: list,
+                     persons: np.ndarray | None = None) -> TextDB:
     """D_T plus one entry per buffer view: E_T ``e_text`` (B, D) of its caption, retrieved by the
-    view's own E_I ``e_img`` (B, D) (both normalised here). Duplicated captions stay, one per
-    view: the same caption is right in several places."""
+    view's own E_I ``e_img`` (B, D) (both normalised here), and with ``persons`` (B, PERSON_DIM)
+    also by the perceived person state there (:mod:`~splatsearch.social.olivia.person_key`).
+    Duplicated captions stay, one per view: the same caption is right in several places."""
     if not (len(e_img) == len(e_text) == len(captions)):
         raise ValueError(f"need one E_I and one E_T per caption, got {len(e_img)}, {len(e_text)}, {len(captions)}")
     unit = lambda a: np.asarray(a, np.float32) / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-6)  # noqa: E731
+    pers = None
+    if persons is not None or db.persons is not None:
+        old = db.persons if db.persons is not None else np.full((len(db.captions), PERSON_DIM), np.nan, np.float32)
+        new = (np.asarray(persons, np.float32).reshape(len(captions), PERSON_DIM) if persons is not None
+               else np.full((len(captions), PERSON_DIM), np.nan, np.float32))
+        pers = np.concatenate([old, new])
     return TextDB(np.concatenate([db.embeddings, unit(e_text)]), list(db.captions) + list(captions),
                   np.concatenate([db.actions, [action_from_text(c) for c in captions]]).astype(np.int32),
-                  np.concatenate([db.key_matrix, unit(e_img)]))
+                  np.concatenate([db.key_matrix, unit(e_img)]), pers)
 
 
 def build_text_db(params, captions: list, cfg: SCCLIPConfig = SCCLIPConfig(), tok: Tokenizer = DEFAULT_TOKENIZER,
@@ -135,11 +151,14 @@ class LLUBuffer:
     oncoming: list = field(default_factory=list)
     episodes: list = field(default_factory=list)
     lazy: bool = False
+    persons: list = field(default_factory=list)
 
-    def add(self, image: np.ndarray, scene=None, observation=None, oncoming: int = 0, episode: int = -1) -> bool:
+    def add(self, image: np.ndarray, scene=None, observation=None, oncoming: int = 0, episode: int = -1,
+            person: np.ndarray | None = None) -> bool:
         """Store one image (H, W, 3) (and the privileged scene a template captioner needs, or with
         ``lazy`` a callable making it, and optionally the whole observation, to show what the
-        update changes on these views; ``oncoming``: head-on people seen; ``episode``: its seed);
+        update changes on these views; ``oncoming``: head-on people seen; ``episode``: its seed;
+        ``person``: (PERSON_DIM,) the perceived person state, NaN / None: nobody ahead);
         returns True when the buffer is full."""
         if len(self.images) < self.size:
             self.images.append(np.asarray(image))
@@ -147,6 +166,7 @@ class LLUBuffer:
             self.observations.append(observation)
             self.oncoming.append(int(oncoming))
             self.episodes.append(int(episode))
+            self.persons.append(NO_PERSON.copy() if person is None else np.asarray(person, np.float32))
         return self.full
 
     @property
@@ -159,11 +179,11 @@ class LLUBuffer:
         for i in idx:
             sc = self.scenes[i]
             out.add(self.images[i], sc() if self.lazy and callable(sc) else sc, self.observations[i],
-                    self.oncoming[i], self.episodes[i])
+                    self.oncoming[i], self.episodes[i], self.persons[i])
         return out
 
     def clear(self) -> None:
-        for a in (self.images, self.scenes, self.observations, self.oncoming, self.episodes):
+        for a in (self.images, self.scenes, self.observations, self.oncoming, self.episodes, self.persons):
             a.clear()
 
 

@@ -34,6 +34,7 @@ from .captions import ACTIONS, caption_scene
 from .features import HORIZON, expert_action, observe
 from ..convoi.perception import visible_people
 from .lidar import PREV_STEPS
+from .person_key import person_distance2, person_state
 from .route import PerceivedRoute
 from ..convoi.runner import GOAL_TOLERANCE, EpisodeResult, make_world
 from .sc_clip import SCCLIP, SCCLIPConfig, normalize
@@ -91,6 +92,14 @@ class OliviaConfig:
     # route_berth is 0 (0: the walls-only shortest path); training data use the same route
     # (TrainConfig.perceived_berth)
     perceived_berth: float = 0.8
+    # D_T's view entries are also keyed by the nearest perceived person's state (person_key.py:
+    # range, bearing, closing speed, lateral offset). False: the thesis' image-only key
+    person_key: bool = False
+    person_weight: float = 0.05  # ranking: image cosine minus this x the scaled squared person distance d2
+    person_gate: float = 1.0  # a view entry's E_T is used only when d2 <= this (and the image cosine passes view_gate)
+    # > 0: a view entry whose person key matches the perceived person (both seen, d2 <= person_gate)
+    # ranks above every other entry and needs only this image cosine (0: view_gate as any view entry)
+    person_view_gate: float = 0.0
 
     def __post_init__(self):
         for name in ("cross_tau", "people_react"):
@@ -103,7 +112,7 @@ N_VOTES = len(ACTIONS) + 1  # the actions, and a bucket for captions without one
 
 
 def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau: float,
-             prior: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+             prior: jax.Array | None = None, penalty: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """(index into D_T of the retrieved E_T, vote vector (N_VOTES,)) for the unit E_I (D,);
     ``db`` (M, D) D_T's unit retrieval keys (:attr:`TextDB.key_matrix`: the caption embeddings,
     or for an LLU update's entries the E_I of their views), ``db_actions`` (M,) int action of each
@@ -118,8 +127,13 @@ def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau
     (0.73 vs 0.65), though in closed loop it did not drive better, hence not the default.
 
     ``prior`` (N_VOTES,): votes carried over from the previous views (decayed by the caller), added
-    before the winning action is chosen; the returned vector includes them."""
+    before the winning action is chosen; the returned vector includes them.
+
+    ``penalty`` (M,): subtracted from the similarities before ranking (the person part of the
+    key, :func:`person_penalty`; None: none)."""
     sim = db @ e_img
+    if penalty is not None:
+        sim = sim - penalty
     top_s, top_i = jax.lax.top_k(sim, min(max(k, 1), db.shape[0]))
     bucket = jnp.where(db_actions < 0, N_VOTES - 1, db_actions)
     votes = jnp.zeros(N_VOTES, F32).at[bucket[top_i]].add(jax.nn.softmax(top_s / tau))
@@ -130,23 +144,52 @@ def retrieve(db: jax.Array, db_actions: jax.Array, e_img: jax.Array, k: int, tau
 
 
 @partial(jax.jit, static_argnames=("cfg", "use_image", "use_lidar", "use_text"))
-def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, is_view, db_actions, image, points, valid, goal, prior,
-          cfg: OliviaConfig, use_image: bool, use_lidar: bool, use_text: bool):
+def _plan(clip_p, tpn_clip_p, tpn_p, tsm_p, db, keys, gates, db_actions, image, points, valid, goal, prior,
+          penalty, person_ok, cfg: OliviaConfig, use_image: bool, use_lidar: bool, use_text: bool):
     e_i = normalize(SCCLIP(cfg.clip).apply({"params": clip_p}, image[None], method=SCCLIP.encode_image))
     # the TPN reads E_I from the encoder it was trained with (an LLU update moves only retrieval's)
     e_i_tpn = e_i if tpn_clip_p is None else normalize(
         SCCLIP(cfg.clip).apply({"params": tpn_clip_p}, image[None], method=SCCLIP.encode_image))
-    j, votes = retrieve(keys, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau, cfg.vote_memory * prior)
+    j, votes = retrieve(keys, db_actions, e_i[0], cfg.retrieve_k, cfg.retrieve_tau, cfg.vote_memory * prior, penalty)
     e_t = db[j][None]
     sim = keys[j] @ e_i[0]
     # a caption retrieved with low similarity describes another scene (its action is right about
     # half the time on held-out views); the TSM then ranks without E_T, as trained with text dropout
-    use_text = jnp.asarray(use_text) & (sim >= jnp.where(is_view[j], cfg.view_gate, cfg.text_gate))
+    use_text = jnp.asarray(use_text) & (sim >= gates[j]) & person_ok[j]
     trajs, scores = TPN(cfg.tpn).apply({"params": tpn_p}, e_i_tpn, points[None], valid[None], goal[None],
                                        jnp.full((1,), use_image), jnp.full((1,), use_lidar), with_scores=True)
     logits = TSM(cfg.tsm).apply({"params": tsm_p}, e_t, trajs, jnp.full((1,), use_text))
     logits = select_logits(logits, scores, cfg.score_weight)
     return trajs[0], logits[0], j, e_i[0], votes, sim, use_text
+
+
+def person_penalty(db: TextDB, person: np.ndarray | None, cfg: OliviaConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(penalty (M,), ok (M,) bool, image-cosine gate (M,)) of D_T's entries for the perceived person state ``person``
+    (PERSON_DIM,) (:func:`~splatsearch.social.olivia.person_key.person_state`; NaN: nobody ahead).
+    Only view entries with ``db.persons`` take part, and only with ``cfg.person_key``: their
+    ranking loses ``cfg.person_weight`` x d2 (capped at 100) and they pass the gate only when
+    d2 <= ``cfg.person_gate``; nobody ahead matches nobody ahead (d2 0) and no person state
+    (inf). Every other entry: penalty 0, ok. The gate is ``view_gate`` for view entries and
+    ``text_gate`` for the others; with ``cfg.person_view_gate`` > 0 a view entry matched by a
+    person actually seen (d2 <= person_gate) gets that gate and a penalty lowered by 1 (it ranks
+    first: image cosines lie in [-1, 1])."""
+    m = len(db.captions)
+    is_view = np.any(db.key_matrix != db.embeddings, axis=1)
+    gate = np.where(is_view, cfg.view_gate, cfg.text_gate).astype(np.float32)
+    if not cfg.person_key or db.persons is None or person is None:
+        return np.zeros(m, np.float32), np.ones(m, bool), gate
+    keys = np.asarray(db.persons, np.float32)
+    s = np.asarray(person, np.float32)
+    d2 = person_distance2(s, keys)
+    none_both = np.all(np.isnan(keys), 1) & bool(np.all(np.isnan(s)))
+    d2 = np.where(none_both, 0.0, d2)
+    pen = np.where(is_view, cfg.person_weight * np.minimum(d2, 100.0), 0.0).astype(np.float32)
+    ok = ~is_view | (d2 <= cfg.person_gate)
+    if cfg.person_view_gate > 0 and not np.all(np.isnan(s)):
+        matched = is_view & ~np.all(np.isnan(keys), 1) & (d2 <= cfg.person_gate)
+        pen = np.where(matched, pen - 1.0, pen).astype(np.float32)
+        gate = np.where(matched, cfg.person_view_gate, gate).astype(np.float32)
+    return pen, ok, gate
 
 
 def select_logits(tsm_logits: jax.Array, tpn_scores: jax.Array, score_weight: float) -> jax.Array:
@@ -195,24 +238,27 @@ class OliviaNav:
         self.params, self.db, self.cfg, self.variant = params, db, cfg, variant
         self._db = jnp.asarray(db.embeddings)
         self._keys = jnp.asarray(db.key_matrix)
-        # entries keyed by a view (an LLU update's) are gated on image-to-image similarity
-        self._is_view = jnp.asarray(np.any(db.key_matrix != db.embeddings, axis=1))
         self._db_actions = jnp.asarray(db.actions, jnp.int32)
 
     def with_variant(self, variant: str) -> "OliviaNav":
         return OliviaNav(self.params, self.db, self.cfg, variant)
 
-    def plan(self, image, points, points_valid, goal, prior=None) -> PlanResult:
+    def plan(self, image, points, points_valid, goal, prior=None, person=None) -> PlanResult:
         """Plan from one observation: image (H, W, 3) float [0, 1] or uint8; points (N, 4);
         points_valid (N,); goal (GOAL_DIM,); prior: (N_VOTES,) the previous plan's ``votes``
-        (used with ``cfg.vote_memory`` > 0; None: none)."""
+        (used with ``cfg.vote_memory`` > 0; None: none); person: (PERSON_DIM,) the perceived
+        nearest person's state (:func:`~splatsearch.social.olivia.person_key.person_state`),
+        retrieval's person key with ``cfg.person_key`` (None: the image-only key)."""
         v = self.variant
         prior = jnp.zeros(N_VOTES, F32) if prior is None else jnp.asarray(prior, F32)
         p = self.params
+        # entries keyed by a view (an LLU update's) are gated on image-to-image similarity
+        pen, ok, gates = person_penalty(self.db, person, self.cfg)
         trajs, logits, j, e_i, votes, sim, used = _plan(p["clip"], p.get("clip_tpn"), p["tpn"], p["tsm"], self._db, self._keys,
-                                                  self._is_view, self._db_actions, jnp.asarray(image),
+                                                  jnp.asarray(gates), self._db_actions, jnp.asarray(image),
                                                   jnp.asarray(points, F32), jnp.asarray(points_valid),
-                                                  jnp.asarray(goal, F32), prior, self.cfg, v != "no_image",
+                                                  jnp.asarray(goal, F32), prior, jnp.asarray(pen), jnp.asarray(ok),
+                                                  self.cfg, v != "no_image",
                                                   v != "no_lidar", v != "no_text")
         j = int(j)
         logits = np.asarray(logits)
@@ -283,7 +329,9 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 path = route.update(people[-1], vel, seen, t * scn.dt,
                                     measured=len(poses) - 1 - tp >= PREV_STEPS)
             obs = observe(scn, pose, people[-1], poses[tp], people[tp], path)
-            res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal, votes)
+            # what the LiDAR measures of the nearest person (retrieval's person key; perception, not the scene)
+            pstate = person_state(pose, people[-1][seen], vel[seen])
+            res = planner.plan(obs.image, obs.points, obs.points_valid, obs.goal, votes, pstate)
             votes = res.votes
             cand = np.stack([robot_to_world(q[:, :2].astype(np.float64), pose.astype(np.float64)) for q in res.trajs])
             clr = np.asarray(field_lookup(field, jnp.asarray(cand, F32))) if cfg.safety > 0 else None
@@ -294,7 +342,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
             if trace is not None:
                 trace.append({"t": t, "pose": pose.copy(), "cand": cand, "trajs": res.trajs, "logits": np.asarray(res.logits),
                               "similarity": res.similarity, "action": res.action, "text_used": res.text_used,
-                              "retrieved": res.retrieved, "route": path, "index": k, "obs": obs,
+                              "retrieved": res.retrieved, "route": path, "index": k, "obs": obs, "person": pstate,
                               "seen_people": people[-1][seen], "seen_vel": vel[seen], "prev_world": traj_world,
                               "elapsed": since * scn.dt, "clearance": clr, "peds": peds,
                               "cmd": cmds[-1] if cmds else np.zeros(2, np.float32)} | parts)
@@ -325,7 +373,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
                 vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
                 buffer.add(obs.image, scene if buffer.lazy else scene(), obs,
-                           oncoming_count(pose, people[-1][seen], vel[seen]), scn.seed)
+                           oncoming_count(pose, people[-1][seen], vel[seen]), scn.seed, pstate)
         since += 1
         cmd, fstate = follow_step(cfg.follower, fstate, jnp.asarray(pose), jnp.asarray(traj_world, F32), scn.dt)
         new_pose = np.asarray(step_unicycle(jnp.asarray(pose), cmd, scn.dt))

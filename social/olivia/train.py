@@ -168,7 +168,8 @@ def config_to_meta(cfg: OliviaConfig) -> dict:
             "safety": cfg.safety, "safety_margin": cfg.safety_margin, "text_gate": cfg.text_gate, "view_gate": cfg.view_gate, "pass_right": cfg.pass_right,
             "arrive_radius": cfg.arrive_radius, "oncoming_yield": cfg.oncoming_yield, "cross_tau": cfg.cross_tau,
             "people_react": cfg.people_react, "oncoming_time": cfg.oncoming_time, "route_fallback": cfg.route_fallback, "route_berth": cfg.route_berth,
-            "perceived_berth": cfg.perceived_berth}
+            "perceived_berth": cfg.perceived_berth, "person_key": cfg.person_key, "person_weight": cfg.person_weight,
+            "person_gate": cfg.person_gate, "person_view_gate": cfg.person_view_gate}
 
 
 def config_from_meta(meta: dict) -> OliviaConfig:
@@ -184,9 +185,9 @@ def config_from_meta(meta: dict) -> OliviaConfig:
                         score_weight=float(c.get("score_weight", 1.0 if t["score"] else 0.0)),
                         **{k: float(c[k]) for k in ("consistency", "safety", "safety_margin", "text_gate", "view_gate", "pass_right", "arrive_radius",
                                                     "cross_tau", "people_react", "oncoming_time", "route_berth",
-                                                    "perceived_berth")
+                                                    "perceived_berth", "person_weight", "person_gate", "person_view_gate")
                            if k in c},
-                        **{k: bool(c[k]) for k in ("oncoming_yield", "route_fallback") if k in c})
+                        **{k: bool(c[k]) for k in ("oncoming_yield", "route_fallback", "person_key") if k in c})
 
 
 # -- training loop --------------------------------------------------------------------------------
@@ -735,11 +736,12 @@ def llu_effect(before: OliviaNav, after: OliviaNav, buf: LLUBuffer, captions: Se
 
     cap_act = [action_from_text(c) for c in captions]
     rows = []
-    for obs, a in zip(buf.observations, cap_act):
+    persons = buf.persons if len(buf.persons) == len(buf.observations) else [None] * len(buf.observations)
+    for obs, a, ps in zip(buf.observations, cap_act, persons):
         if obs is None:
             continue
-        pb = before.plan(obs.image, obs.points, obs.points_valid, obs.goal)
-        pa = after.plan(obs.image, obs.points, obs.points_valid, obs.goal)
+        pb = before.plan(obs.image, obs.points, obs.points_valid, obs.goal, person=ps)
+        pa = after.plan(obs.image, obs.points, obs.points_valid, obs.goal, person=ps)
         rows.append({"caption_action": int(a), "retrieved_before": pb.action, "retrieved_after": pa.action,
                      "index_before": pb.index, "index_after": pa.index,
                      "plan_action_before": action_of(pb.trajs[pb.index]),
@@ -778,7 +780,8 @@ def apply_llu(planner: OliviaNav, buf: LLUBuffer, captions: Sequence[str], llu: 
     db = build_text_db(new_clip, base + list(captions), planner.cfg.clip)
     if llu.view_entries:
         db = add_view_entries(db, encode_all_images(new_clip, imgs, planner.cfg.clip),
-                              encode_all_texts(new_clip, list(captions), planner.cfg.clip), list(captions))
+                              encode_all_texts(new_clip, list(captions), planner.cfg.clip), list(captions),
+                              np.stack(buf.persons) if len(buf.persons) == len(captions) else None)
     # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans
     after = OliviaNav(dict(planner.params, clip=new_clip,
                            clip_tpn=planner.params.get("clip_tpn", planner.params["clip"])),
