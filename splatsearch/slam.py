@@ -197,7 +197,7 @@ class TrackerConfig:
     (m): OpenCV's ICP correspondence limit (see :func:`~splatsearch.odometry_f2f.f2f_step`).
     f2f_trans_sigma (m, None: off): an accepted step's camera displacement replaces the wheel
     odometry's too (planar: its horizontal part), with this sigma on each axis. f2f_along_sigma
-    (m, None: off; exclusive with f2f_trans_sigma): only the displacement's component along the
+    (m, None: off; unused when f2f_trans_sigma is set): only the displacement's component along the
     wheel odometry's direction of motion is taken from an accepted step, with this sigma along that
     direction; across it the wheel odometry's prediction and ``prior_lateral_sigma`` stay
     (:func:`~splatsearch.odometry_f2f.along_step`; the odometry errs in distance travelled).
@@ -255,9 +255,6 @@ class TrackerConfig:
             raise ValueError(f"f2f_trans_sigma must be None or a finite value > 0, got {self.f2f_trans_sigma}")
         if self.f2f_along_sigma is not None and not (self.f2f_along_sigma > 0 and math.isfinite(self.f2f_along_sigma)):
             raise ValueError(f"f2f_along_sigma must be None or a finite value > 0, got {self.f2f_along_sigma}")
-        if self.f2f_along_sigma is not None and self.f2f_trans_sigma is not None:
-            raise ValueError("f2f_along_sigma and f2f_trans_sigma are exclusive (along-path only, or the whole "
-                             "displacement)")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -800,7 +797,8 @@ class SLAM:
                 last = [p for p in self.poses if np.all(np.isfinite(p))][-1].astype(np.float64)
                 prior_q = prior_q.copy()
                 prior_q[:3, :3] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_rot_sigma ** 2)
-                if self.tcfg.f2f_along_sigma is not None and np.linalg.norm(rel_odo[:3, 3]) > 1e-3:
+                if self.tcfg.f2f_trans_sigma is None and self.tcfg.f2f_along_sigma is not None \
+                        and np.linalg.norm(rel_odo[:3, 3]) > 1e-3:
                     # OpenCV's distance along the odometry's direction of motion, the odometry's across it
                     step = odometry_f2f.along_step(rel_odo, self._f2f_acc)
                     d = step[:3, 3] / np.linalg.norm(step[:3, 3])
