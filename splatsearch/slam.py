@@ -201,6 +201,10 @@ class TrackerConfig:
     wheel odometry's direction of motion is taken from an accepted step, with this sigma along that
     direction; across it the wheel odometry's prediction and ``prior_lateral_sigma`` stay
     (:func:`~splatsearch.odometry_f2f.along_step`; the odometry errs in distance travelled).
+    f2f_retry_depth_diff (m, None: off): a step that OpenCV fails or the gate rejects at
+    ``f2f_max_depth_diff`` is tried once more with this ICP correspondence limit (OpenCV starts from
+    no motion, so in a turn or a long step most pairs lie beyond 0.07 m; the retry is gated the same
+    way).
     """
 
     iters: int = 40
@@ -247,6 +251,7 @@ class TrackerConfig:
     f2f_max_depth_diff: float = 0.07
     f2f_trans_sigma: float | None = None
     f2f_along_sigma: float | None = None
+    f2f_retry_depth_diff: float | None = None
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -255,6 +260,9 @@ class TrackerConfig:
             raise ValueError(f"f2f_trans_sigma must be None or a finite value > 0, got {self.f2f_trans_sigma}")
         if self.f2f_along_sigma is not None and not (self.f2f_along_sigma > 0 and math.isfinite(self.f2f_along_sigma)):
             raise ValueError(f"f2f_along_sigma must be None or a finite value > 0, got {self.f2f_along_sigma}")
+        if self.f2f_retry_depth_diff is not None and not (self.f2f_retry_depth_diff > 0
+                                                          and math.isfinite(self.f2f_retry_depth_diff)):
+            raise ValueError(f"f2f_retry_depth_diff must be None or a finite value > 0, got {self.f2f_retry_depth_diff}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -912,11 +920,17 @@ class SLAM:
             self._f2f_acc, self._f2f_link = None, "failed"
             return "failed"
         odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._f2f_ref_odom)
-        step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K, max_depth_diff=self.tcfg.f2f_max_depth_diff)
-        if step is not None and self.tcfg.planar:
-            step = odometry_f2f.planar_yaw_only(step, self._f2f_ref_odom[:3, 2])
         sr, st = self.tcfg.prior_sigma(odo)
-        status = "failed" if step is None else ("accepted" if odometry_f2f.gate_step(step, odo, sr, st) else "rejected")
+        limits = [self.tcfg.f2f_max_depth_diff] + ([self.tcfg.f2f_retry_depth_diff]
+                                                   if self.tcfg.f2f_retry_depth_diff is not None else [])
+        for md in limits:
+            step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K, max_depth_diff=md)
+            if step is not None and self.tcfg.planar:
+                step = odometry_f2f.planar_yaw_only(step, self._f2f_ref_odom[:3, 2])
+            status = "failed" if step is None else ("accepted" if odometry_f2f.gate_step(step, odo, sr, st)
+                                                    else "rejected")
+            if status == "accepted":
+                break
         if status != "accepted" or self._f2f_acc is None:
             self._f2f_acc = None
         else:

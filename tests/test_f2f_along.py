@@ -69,3 +69,29 @@ def test_slam_hands_the_tracker_the_along_path_prior(monkeypatch):
     assert q[5, 5] == pytest.approx(cfg.prior_weight / 2e-3 ** 2, rel=1e-6)  # along z, the motion
     s_lat = cfg.prior_lateral_sigma * 0.106 + cfg.prior_trans_floor
     assert q[3, 3] == pytest.approx(cfg.prior_weight / s_lat ** 2, rel=1e-6)
+
+
+@pytest.mark.parametrize("retry", [None, 0.15])
+def test_retry_with_a_looser_depth_limit(monkeypatch, retry):
+    """A step OpenCV fails at f2f_max_depth_diff is tried again at f2f_retry_depth_diff."""
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    true = _step(0.1, [0.0, 0.0, 0.0])  # a turn in place, where the tight limit fails
+    limits = []
+
+    def fake_f2f(*a, max_depth_diff=0.07, **k):
+        limits.append(max_depth_diff)
+        return true.copy() if max_depth_diff > 0.1 else None
+
+    monkeypatch.setattr(odometry_f2f, "f2f_step", fake_f2f)
+    cfg = slam.TrackerConfig(f2f_retry_depth_diff=retry)
+    cfg.validate()
+    s = slam.SLAM(K, 160, 120, tracker_config=cfg)
+    s._f2f_ref, s._f2f_ref_odom = (np.zeros((120, 160, 3), np.float32), np.ones((120, 160), np.float32)), np.eye(4)
+    status = s._f2f_link_to(np.zeros((120, 160, 3), np.float32), np.ones((120, 160), np.float32), true)
+    if retry is None:
+        assert status == "failed" and limits == [0.07]
+    else:
+        assert status == "accepted" and limits == [0.07, 0.15]
+        assert s._f2f_acc == pytest.approx(true)
+    with pytest.raises(ValueError, match="f2f_retry_depth_diff"):
+        slam.TrackerConfig(f2f_retry_depth_diff=0.0).validate()
