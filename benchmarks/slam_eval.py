@@ -145,6 +145,12 @@ def main(argv=None) -> int:
     p.add_argument("--f2f-trans-sigma", type=float, default=d.f2f_trans_sigma,
                    help="also take an accepted frame-to-frame step's displacement, with this sigma in m "
                         f"(default {d.f2f_trans_sigma}: rotation only)")
+    p.add_argument("--f2f-along-sigma", type=float, default=d.f2f_along_sigma,
+                   help="take only an accepted frame-to-frame step's displacement along the odometry's direction "
+                        f"of motion, with this sigma in m (default {d.f2f_along_sigma}: off)")
+    p.add_argument("--f2f-retry-depth-diff", type=float, default=d.f2f_retry_depth_diff,
+                   help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
+                        f"(default {d.f2f_retry_depth_diff}: no retry)")
     p.add_argument("--odometry-seed", type=int, default=None,
                    help="seed of the simulator walk's odometry noise (default: the house seed, so each house "
                         "has its own noise sequence)")
@@ -178,7 +184,8 @@ def main(argv=None) -> int:
                          prior_info_max=a.prior_info_max, gn_loss_tol=a.track_gn_loss_tol,
                          map_min_info=a.map_min_info, map_skip_max=a.map_skip_max, f2f_prior=a.f2f_prior,
                          f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff,
-                         f2f_trans_sigma=a.f2f_trans_sigma, jacobian=a.track_jacobian)
+                         f2f_trans_sigma=a.f2f_trans_sigma, f2f_along_sigma=a.f2f_along_sigma,
+                         f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian)
     try:
         tcfg.validate()
     except ValueError as e:

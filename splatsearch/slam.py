@@ -196,7 +196,15 @@ class TrackerConfig:
     prediction, and the prior's rotation sigma becomes ``f2f_rot_sigma`` rad. f2f_max_depth_diff
     (m): OpenCV's ICP correspondence limit (see :func:`~splatsearch.odometry_f2f.f2f_step`).
     f2f_trans_sigma (m, None: off): an accepted step's camera displacement replaces the wheel
-    odometry's too (planar: its horizontal part), with this sigma on each axis.
+    odometry's too (planar: its horizontal part), with this sigma on each axis. f2f_along_sigma
+    (m, None: off; unused when f2f_trans_sigma is set): only the displacement's component along the
+    wheel odometry's direction of motion is taken from an accepted step, with this sigma along that
+    direction; across it the wheel odometry's prediction and ``prior_lateral_sigma`` stay
+    (:func:`~splatsearch.odometry_f2f.along_step`; the odometry errs in distance travelled).
+    f2f_retry_depth_diff (m, None: off): a step that OpenCV fails or the gate rejects at
+    ``f2f_max_depth_diff`` is tried once more with this ICP correspondence limit (OpenCV starts from
+    no motion, so in a turn or a long step most pairs lie beyond 0.07 m; the retry is gated the same
+    way).
     """
 
     iters: int = 40
@@ -242,12 +250,19 @@ class TrackerConfig:
     f2f_rot_sigma: float = 1e-3
     f2f_max_depth_diff: float = 0.07
     f2f_trans_sigma: float | None = None
+    f2f_along_sigma: float | None = None
+    f2f_retry_depth_diff: float | None = None
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
             raise ValueError(f"f2f_rot_sigma must be a finite value > 0, got {self.f2f_rot_sigma}")
         if self.f2f_trans_sigma is not None and not (self.f2f_trans_sigma > 0 and math.isfinite(self.f2f_trans_sigma)):
             raise ValueError(f"f2f_trans_sigma must be None or a finite value > 0, got {self.f2f_trans_sigma}")
+        if self.f2f_along_sigma is not None and not (self.f2f_along_sigma > 0 and math.isfinite(self.f2f_along_sigma)):
+            raise ValueError(f"f2f_along_sigma must be None or a finite value > 0, got {self.f2f_along_sigma}")
+        if self.f2f_retry_depth_diff is not None and not (self.f2f_retry_depth_diff > 0
+                                                          and math.isfinite(self.f2f_retry_depth_diff)):
+            raise ValueError(f"f2f_retry_depth_diff must be None or a finite value > 0, got {self.f2f_retry_depth_diff}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -790,7 +805,17 @@ class SLAM:
                 last = [p for p in self.poses if np.all(np.isfinite(p))][-1].astype(np.float64)
                 prior_q = prior_q.copy()
                 prior_q[:3, :3] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_rot_sigma ** 2)
-                if self.tcfg.f2f_trans_sigma is None:
+                if self.tcfg.f2f_trans_sigma is None and self.tcfg.f2f_along_sigma is not None \
+                        and np.linalg.norm(rel_odo[:3, 3]) > 1e-3:
+                    # OpenCV's distance along the odometry's direction of motion, the odometry's across it
+                    step = odometry_f2f.along_step(rel_odo, self._f2f_acc)
+                    d = step[:3, 3] / np.linalg.norm(step[:3, 3])
+                    P = np.outer(d, d)
+                    s_lat = self.tcfg.prior_sigma(rel_odo)[1] if self.tcfg.prior_lateral_sigma is None else \
+                        self.tcfg.prior_lateral_sigma * float(np.linalg.norm(rel_odo[:3, 3])) + self.tcfg.prior_trans_floor
+                    prior_q[3:, 3:] = self.tcfg.prior_weight * (P / self.tcfg.f2f_along_sigma ** 2
+                                                                + (np.eye(3) - P) / s_lat ** 2)
+                elif self.tcfg.f2f_trans_sigma is None:
                     step = odometry_f2f.prior_step(rel_odo, self._f2f_acc)
                 else:  # OpenCV's displacement too
                     step = self._f2f_acc
@@ -895,11 +920,17 @@ class SLAM:
             self._f2f_acc, self._f2f_link = None, "failed"
             return "failed"
         odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._f2f_ref_odom)
-        step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K, max_depth_diff=self.tcfg.f2f_max_depth_diff)
-        if step is not None and self.tcfg.planar:
-            step = odometry_f2f.planar_yaw_only(step, self._f2f_ref_odom[:3, 2])
         sr, st = self.tcfg.prior_sigma(odo)
-        status = "failed" if step is None else ("accepted" if odometry_f2f.gate_step(step, odo, sr, st) else "rejected")
+        limits = [self.tcfg.f2f_max_depth_diff] + ([self.tcfg.f2f_retry_depth_diff]
+                                                   if self.tcfg.f2f_retry_depth_diff is not None else [])
+        for md in limits:
+            step = odometry_f2f.f2f_step(*self._f2f_ref, rgb, depth, self.K, max_depth_diff=md)
+            if step is not None and self.tcfg.planar:
+                step = odometry_f2f.planar_yaw_only(step, self._f2f_ref_odom[:3, 2])
+            status = "failed" if step is None else ("accepted" if odometry_f2f.gate_step(step, odo, sr, st)
+                                                    else "rejected")
+            if status == "accepted":
+                break
         if status != "accepted" or self._f2f_acc is None:
             self._f2f_acc = None
         else:
