@@ -35,7 +35,7 @@ def test_mapper_step_runs_every_matmul_at_full_precision():
     depth = jnp.full((H, W), 2.0, jnp.float32)
     stats = _ssim_stats_jit(rgb)
     text = m._step.lower(m.map.params(), m.map.active, m.opt_state, rgb, stats, depth,
-                         jnp.eye(4, dtype=jnp.float32)).as_text()
+                         jnp.eye(4, dtype=jnp.float32), jnp.float32(1.0)).as_text()
     dots = _dot_lines(text)
     assert dots, "the mapping loss (SSIM windows) holds matmuls"
     assert all("HIGHEST" in ln for ln in dots), [ln for ln in dots if "HIGHEST" not in ln][:3]
