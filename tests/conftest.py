@@ -9,6 +9,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 os.environ.setdefault("SPLATSEARCH_JAX_CACHE", "off")
 
 
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 
@@ -56,3 +57,23 @@ def random_blob_map():
                 np.full(n, opacity, np.float32), rng.uniform(0, 1, (n, 3)).astype(np.float32))
 
     return make
+
+
+@pytest.fixture
+def tracker_start(monkeypatch):
+    """Stop ``SLAM.process`` at its tracking call and record what the tracker was handed.
+
+    Returns a dict filled on the call: ``init`` (4x4 float64 viewmat the tracker starts from) and
+    ``q`` (the 6x6 prior precision); the call raises ``RuntimeError("stop")``. Mapping is a no-op.
+    """
+    from splatsearch import slam
+
+    seen: dict = {}
+
+    def fake_track(gmap, rgb, depth, init_viewmat, K, width, height, config=None, *, prior_precision=None, **kw):
+        seen["init"], seen["q"] = np.asarray(init_viewmat, np.float64), prior_precision
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(slam, "track", fake_track)
+    monkeypatch.setattr(slam.Mapper, "update", lambda self, *a, **k: {})
+    return seen

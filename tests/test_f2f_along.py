@@ -41,21 +41,14 @@ def test_along_sigma_validation():
     assert slam.TrackerConfig().f2f_along_sigma is None
 
 
-def test_slam_hands_the_tracker_the_along_path_prior(monkeypatch):
+def test_slam_hands_the_tracker_the_along_path_prior(monkeypatch, tracker_start):
     """With an accepted OpenCV step, the tracker's start moves by OpenCV's distance along the path
     and its prior precision is 1 / f2f_along_sigma^2 along it, the lateral one across it."""
     K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
     true = _step(0.0, [0.0, 0.0, 0.10])
     odo_step = _step(0.0, [0.0, 0.0, 0.106])  # the odometry 6 mm long
     monkeypatch.setattr(odometry_f2f, "f2f_step", lambda *a, **k: true.copy())
-    seen = {}
-
-    def fake_track(gmap, rgb, depth, init_viewmat, K, width, height, config=None, *, prior_precision=None, **kw):
-        seen["init"], seen["q"] = np.asarray(init_viewmat, np.float64), prior_precision
-        raise RuntimeError("stop")
-
-    monkeypatch.setattr(slam, "track", fake_track)
-    monkeypatch.setattr(slam.Mapper, "update", lambda self, *a, **k: {})
+    seen = tracker_start
     rgb = np.full((120, 160, 3), 0.5, np.float32)
     depth = np.full((120, 160), 2.0, np.float32)
     vm0 = np.eye(4)

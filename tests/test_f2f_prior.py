@@ -106,7 +106,7 @@ def test_cli_tracking_flags_parse():
             p.parse_args(["map", "--track", *bad])
 
 
-def test_accepted_rotation_replaces_the_odometry_rotation_in_the_prior(turn_pair, monkeypatch):
+def test_accepted_rotation_replaces_the_odometry_rotation_in_the_prior(turn_pair, tracker_start):
     """SLAM hands the tracker the frame-to-frame rotation and its tight sigma; without the prior,
     the wheel odometry's."""
     K, (a, b), (vm0, vm1) = turn_pair
@@ -115,14 +115,7 @@ def test_accepted_rotation_replaces_the_odometry_rotation_in_the_prior(turn_pair
     centre = np.eye(4)
     centre[:3, 3] = np.linalg.inv(vm1)[:3, 3]
     odo1 = vm1 @ centre @ rz @ np.linalg.inv(centre)  # the odometry's heading 0.6 degrees off, same position
-    seen = {}
-
-    def fake_track(gmap, rgb, depth, init_viewmat, K, width, height, config=None, *, prior_precision=None, **kw):
-        seen["init"], seen["q"] = np.asarray(init_viewmat, np.float64), prior_precision
-        raise RuntimeError("stop")
-
-    monkeypatch.setattr(slam, "track", fake_track)
-    monkeypatch.setattr(slam.Mapper, "update", lambda self, *a, **k: {})
+    seen = tracker_start
     odo1[:3, 3] += odo1[:3, :3] @ np.array([0.004, 0.0, 0.0])  # and 4 mm off sideways
     disp = lambda vm: np.linalg.inv(vm)[:3, 3]  # noqa: E731
     for on, trans in ((True, None), (False, None), (True, 2e-3)):
