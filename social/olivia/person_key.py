@@ -12,8 +12,10 @@ the nearest person the robot saw there, relative to the robot:
 With ``OliviaConfig.person_key`` on, a view entry j with person key s_j is ranked for a view
 with person state s by ``cos(E_I, key_j) - person_weight * d2(s, s_j)`` and passes the gate only
 when ``d2 <= person_gate`` (besides ``view_gate`` on the image cosine), where
-``d2 = sum(((s - s_j) / PERSON_SCALE)²)`` is dimensionless. Entries without a person key (the
-offline captions, or a view where nobody was seen) keep the image-only ranking.
+``d2 = sum(((s - s_j) / PERSON_SCALE)²)`` is dimensionless. The offline caption entries (not
+view entries) keep the image-only ranking; a view entry where nobody was seen ahead matches only
+a view where nobody is seen ahead (d2 0), never a perceived person (d2 inf): see
+:func:`splatsearch.social.olivia.planner.person_penalty`.
 """
 
 from __future__ import annotations
