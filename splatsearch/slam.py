@@ -317,13 +317,26 @@ class TrackerConfig:
         step = np.asarray(odometry_step, np.float64)
         sr, st = self.prior_sigma(step)
         Q = diagonal_precision(self.prior_weight, sr, st)
-        dist = float(np.linalg.norm(step[:3, 3]))
-        if self.prior_lateral_sigma is not None and dist > 0:
-            d = step[:3, 3] / dist  # the motion's axis in the new camera frame
-            s_lat = self.prior_lateral_sigma * dist + self.prior_trans_floor
-            P = np.outer(d, d)
-            Q[3:, 3:] = self.prior_weight * (P / st ** 2 + (np.eye(3) - P) / s_lat ** 2)
+        if self.prior_lateral_sigma is not None and float(np.linalg.norm(step[:3, 3])) > 0:
+            # the motion's axis in the new camera frame
+            Q[3:, 3:] = self.axis_precision(step[:3, 3], st, self.lateral_sigma(step))
         return Q
+
+    def lateral_sigma(self, odometry_step) -> float:
+        """Sigma (m) of the odometry prior's translation across the direction moved by
+        ``odometry_step`` (4, 4): ``prior_lateral_sigma`` x the distance + ``prior_trans_floor``,
+        or (``prior_lateral_sigma`` None) :meth:`prior_sigma`'s translation sigma."""
+        if self.prior_lateral_sigma is None:
+            return self.prior_sigma(odometry_step)[1]
+        dist = float(np.linalg.norm(np.asarray(odometry_step, np.float64)[:3, 3]))
+        return self.prior_lateral_sigma * dist + self.prior_trans_floor
+
+    def axis_precision(self, axis: np.ndarray, s_along: float, s_across: float) -> np.ndarray:
+        """(3, 3) translation weight (prior_weight included) with sigma ``s_along`` (m) along
+        ``axis`` (3,) (any length > 0, camera frame) and ``s_across`` (m) across it."""
+        d = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+        P = np.outer(d, d)
+        return self.prior_weight * (P / s_along ** 2 + (np.eye(3) - P) / s_across ** 2)
 
 
 def parse_lateral_sigma(text: str) -> float | None:
@@ -809,12 +822,8 @@ class SLAM:
                         and np.linalg.norm(rel_odo[:3, 3]) > 1e-3:
                     # OpenCV's distance along the odometry's direction of motion, the odometry's across it
                     step = odometry_f2f.along_step(rel_odo, self._f2f_acc)
-                    d = step[:3, 3] / np.linalg.norm(step[:3, 3])
-                    P = np.outer(d, d)
-                    s_lat = self.tcfg.prior_sigma(rel_odo)[1] if self.tcfg.prior_lateral_sigma is None else \
-                        self.tcfg.prior_lateral_sigma * float(np.linalg.norm(rel_odo[:3, 3])) + self.tcfg.prior_trans_floor
-                    prior_q[3:, 3:] = self.tcfg.prior_weight * (P / self.tcfg.f2f_along_sigma ** 2
-                                                                + (np.eye(3) - P) / s_lat ** 2)
+                    prior_q[3:, 3:] = self.tcfg.axis_precision(step[:3, 3], self.tcfg.f2f_along_sigma,
+                                                               self.tcfg.lateral_sigma(rel_odo))
                 elif self.tcfg.f2f_trans_sigma is None:
                     step = odometry_f2f.prior_step(rel_odo, self._f2f_acc)
                 else:  # OpenCV's displacement too
