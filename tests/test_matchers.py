@@ -204,6 +204,7 @@ def test_dumper_is_deterministic(tmp_path):
             np.testing.assert_array_equal(v, db[k], err_msg=k)
 
 
+@pytest.mark.slow  # a three-step agent episode with the NVSM dump, about 15 s on 2 cores
 def test_dumper_writes_a_loadable_file(tmp_path):
     """A three-step episode that starts facing the goal chair of dev house 0: the supplement
     verifies both chairs the robot saw, and the file holds the views the separation scores."""

@@ -313,18 +313,24 @@ def test_retrieve_prior_votes_carry_the_action():
     assert int(j) == 1 and float(votes[1]) == pytest.approx(3.0) and float(votes[5]) == pytest.approx(1.0)
 
 
-def test_tpn_mode_scores_and_their_loss(tpn_setup):
-    params, (e, pts, v, g), _ = tpn_setup
-    on = jnp.ones(2, bool)
-    trajs, scores = tpn.TPN(SMALL_TPN).apply({"params": params}, e, pts, v, g, on, on, with_scores=True)
-    assert trajs.shape == (2, SMALL_TPN.K, HORIZON, 3) and scores.shape == (2, SMALL_TPN.K)
-    assert scores.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(scores)))
-    # the score loss is the cross-entropy against the head closest to the target
+def test_tpn_score_loss_is_the_cross_entropy_against_the_closest_head():
+    rng = np.random.default_rng(3)
+    trajs = jnp.asarray(rng.normal(size=(2, SMALL_TPN.K, HORIZON, 3)), F32)
+    scores = jnp.asarray(rng.normal(size=(2, SMALL_TPN.K)), F32)
     target = trajs[:, 1] + 0.01
     k = np.asarray(tpn.closest_head(trajs, target))
     assert k.tolist() == [1, 1]
     want = -np.mean(np.asarray(jax.nn.log_softmax(scores, -1))[np.arange(2), k])
     assert float(tpn.score_loss(scores, trajs, target)) == pytest.approx(want, rel=1e-5)
+
+
+@pytest.mark.slow  # compiles the TPN twice more (with and without the score head), ~40 s on 2 cores
+def test_tpn_mode_scores_and_a_checkpoint_without_the_head(tpn_setup):
+    params, (e, pts, v, g), _ = tpn_setup
+    on = jnp.ones(2, bool)
+    trajs, scores = tpn.TPN(SMALL_TPN).apply({"params": params}, e, pts, v, g, on, on, with_scores=True)
+    assert trajs.shape == (2, SMALL_TPN.K, HORIZON, 3) and scores.shape == (2, SMALL_TPN.K)
+    assert scores.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(scores)))
     # a checkpoint without the head (score=False) still plans, with flat scores
     c = tpn.TPNConfig(**{**SMALL_TPN.__dict__, "score": False})
     p0 = tpn.init_tpn(jax.random.PRNGKey(2), c)

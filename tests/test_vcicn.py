@@ -115,6 +115,7 @@ def _synthetic_shards(d, seeds, views=4, size=24):
                  gt_depth=np.zeros((O, views, size, size), np.float16))
 
 
+@pytest.mark.slow  # compiles the training step twice (fresh and resumed run), about 55 s on 2 cores
 def test_tiny_training_lowers_validation_loss_and_resumes(tmp_path):
     from splatsearch.vcicn.train import TrainConfig, train
 
