@@ -60,7 +60,9 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: boo
     for e in agent.db:
         inst, dist = _nearest_instance(env.house, e.label, e.centroid)
         entries.append({"entry": e.id, "instance": inst, "dist": round(dist, 2), "is_goal": inst == ep.goal_instance_id,
-                        "e_max": e.e_max, "n_nvsm": e.n_nvsm, "matched": e.matched})
+                        "e_max": e.e_max, "n_nvsm": e.n_nvsm, "matched": e.matched,
+                        # every non-zero count with its step and kind: which frame made or broke a match
+                        "counts": getattr(agent.verifier, "count_log", {}).get(e.id, [])})
     out = r.to_json()
     out.pop("trajectory")
     out.update({"look_again": look_again, "look_log": agent.policy.look_log, "entries": entries,
