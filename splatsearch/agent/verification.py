@@ -90,7 +90,7 @@ class Verifier:
         self.step_counts = {}
         self._step += 1
 
-    def _note(self, entry_id: int, count: float, kind: str) -> None:
+    def _note(self, entry_id: int, count: float, kind: str = "crop") -> None:
         self.step_counts[entry_id] = max(self.step_counts.get(entry_id, 0.0), float(count))
         if count > 0:  # zeros are most crops of far objects: kept out so the log stays small
             self.count_log.setdefault(entry_id, []).append([self._step, kind, round(float(count), 2)])
