@@ -60,7 +60,9 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: boo
     for e in agent.db:
         inst, dist = _nearest_instance(env.house, e.label, e.centroid)
         entries.append({"entry": e.id, "instance": inst, "dist": round(dist, 2), "is_goal": inst == ep.goal_instance_id,
-                        "e_max": e.e_max, "n_nvsm": e.n_nvsm, "matched": e.matched})
+                        "e_max": e.e_max, "n_nvsm": e.n_nvsm, "matched": e.matched,
+                        # every non-zero count with its step and kind: which frame made or broke a match
+                        "counts": getattr(agent.verifier, "count_log", {}).get(e.id, [])})
     out = r.to_json()
     out.pop("trajectory")
     out.update({"look_again": look_again, "look_log": agent.policy.look_log, "entries": entries,
@@ -148,6 +150,31 @@ def summary(dirs: list[str]) -> int:
     return 0
 
 
+def trips(dirs: list[str], tau_m: float = 15.0) -> int:
+    """Print every confirm trip of the runs in ``dirs``: whether its entry is the goal, the count
+    that made the match (the first >= tau_m in the entry's count log: step, kind), the best count
+    before the trip, the confirming frame's own count, the outcome, and where it looked from (the
+    azimuth gap to the stored observations, the viewpoint's and the stored cameras' distances)."""
+    for d in dirs:
+        for p in sorted(glob.glob(os.path.join(d, "ep_*.json"))):
+            r = json.load(open(p))
+            ent = {e["entry"]: e for e in r["entries"]}
+            for x in r["look_log"]:
+                if x["kind"] != "confirm":
+                    continue
+                e = ent.get(x["entry"], {})
+                first = next((c for c in e.get("counts", []) if c[2] >= tau_m), None)
+                g = x.get("geometry") or {}
+                seen = g.get("seen_dist_m") or []
+                print(f"{r['house_seed']}/{r['episode_id']} {'S' if r['success'] else 'F'} {r['steps']} steps: "
+                      f"entry {x['entry']} {'GOAL' if e.get('is_goal') else 'look-alike'}, match made by "
+                      f"{first}, e_max {x['e_max_before']:.0f} -> new frame {x['count_new']} "
+                      f"({x['outcome']}, steps {x['start']}-{x['end']}); gap {g.get('gap_deg')} deg, viewpoint "
+                      f"{g.get('view_dist_m')} m, stored cameras {len(seen)} at median "
+                      f"{np.median(seen) if seen else float('nan'):.2f} m, e_max camera az {g.get('best_az_deg')}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--look-again", type=int, default=0, help="AgentConfig.look_again (views per ambiguous object)")
@@ -173,9 +200,13 @@ def main(argv=None) -> int:
                     help="default houses (no look-alike furniture) with the colour cue on, as `splatsearch eval` "
                          "without --identical-furniture: a check that the look-again/confirm settings keep that SR")
     ap.add_argument("--summary", nargs="+", default=None, metavar="DIR", help="summarise finished runs and exit")
+    ap.add_argument("--trips", nargs="+", default=None, metavar="DIR",
+                    help="list every confirm trip of finished runs (goal or look-alike, counts, viewpoint gap) and exit")
     args = ap.parse_args(argv)
     if args.summary:
         return summary(args.summary)
+    if args.trips:
+        return trips(args.trips)
     if args.out is None:
         ap.error("--out is needed to run")
     import warp as wp

@@ -261,6 +261,34 @@ def test_confirm_trip_refutes_a_marginal_match_whose_new_frame_falls_below_tau_m
     assert not policy.is_refuted(db[e]) and policy.goal_candidates() == [db[e]]
 
 
+def test_trip_log_keeps_the_viewpoint_geometry_and_the_entry_counts(episode):
+    """The diagnostic fields of a confirm trip: where it looked from relative to the stored
+    observation (azimuth gap, distances) and the entry's count log (step, kind, count)."""
+    ep, env = episode
+    agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0, look_again=1)
+    policy = agent.policy
+    # one stored observation from the start, 3 m west of the object (azimuth 180 deg around it)
+    vm = np.eye(4)
+    vm[:3, 3] = -np.array([c[0], c[1], 1.0])
+    agent.perception.observations.add(e, np.zeros((4, 4, 3)), np.ones((4, 4)), vm)
+
+    def capture(eid):
+        agent.verifier._note(eid, 0.0, "crop")  # zeros are not logged
+        agent.verifier._note(eid, 11.0, "nvsm")
+
+    planner.status = "reached"
+    agent.verifier.new_step()
+    policy.decide(np.array([c[0], c[1], 0.0]), 1, capture=capture)
+    g = policy.look_log[-1]["geometry"]
+    assert policy.look_log[-1]["outcome"] == "refuted"
+    assert len(g["seen_az_deg"]) == 1 and abs(abs(g["seen_az_deg"][0]) - 180.0) < 0.1
+    assert g["seen_dist_m"] == [3.0] and 1.0 <= g["view_dist_m"] <= 2.5
+    gap = abs((g["view_az_deg"] - 180.0 + 180.0) % 360.0 - 180.0)
+    assert abs(g["gap_deg"] - gap) < 0.2 and g["gap_deg"] >= 40.0  # choose_viewpoint's novelty
+    assert g["best_az_deg"] is None  # the 16 came without a camera
+    assert agent.verifier.count_log[e] == [[1, "nvsm", 11.0]]
+
+
 def test_confirm_trip_keeps_a_match_the_new_frame_confirms_and_is_off_by_default(episode):
     ep, env = episode
     agent, e, c, planner = _marginal_match(ep, env, confirm_below=18.0)

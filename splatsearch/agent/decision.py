@@ -40,6 +40,7 @@ import numpy as np
 
 from splatsearch.nav.exploration import Decision, ExplorationPlanner, ObjectScore
 from splatsearch.nav.grid import wrap_angle
+from splatsearch.search.novel_views import camera_pose
 from splatsearch.search.objects import ObjectDB, ObjectEntry
 
 from .config import AgentConfig, Strategy
@@ -77,7 +78,8 @@ class SearchPolicy:
     ``last_decision`` (the explorer's latest frontier decision), and for the look-again step
     ``looks`` (entry id -> views begun) and ``look_log`` (one dict per trip: kind "look",
     "rival" or "confirm", entry, start and end step, outcome, the viewpoint and path metres, e_max before and
-    after, and the captured frame's own count ``count_new``), ``confirmed`` (entry ids whose
+    after, the captured frame's own count ``count_new`` and, for diagnosis, ``geometry`` (see
+    :meth:`_trip_geometry`)), ``confirmed`` (entry ids whose
     marginal match a confirm trip settled or could not check) and ``refuted`` (entry id -> the
     captured frame's count, below tau_m).
     """
@@ -196,7 +198,8 @@ class SearchPolicy:
         self.look_log.append({"kind": lk["kind"], "entry": e.id, "start": lk["start"], "end": int(step),
                               "outcome": outcome, "xy": [float(v) for v in lk["xy"]],
                               "path_m": round(float(lk["path"]), 2), "e_max_before": float(lk["e_max"]),
-                              "e_max_after": float(e.e_max), "count_new": count_new})
+                              "e_max_after": float(e.e_max), "count_new": count_new,
+                              "geometry": lk.get("geometry")})
 
     def _viewpoint(self, e: ObjectEntry, D: np.ndarray):
         """The look-again viewpoint of entry ``e`` (``choose_viewpoint``) given the geodesic
@@ -209,6 +212,27 @@ class SearchPolicy:
                                 view_azimuths=None if vh is None else azimuths_of(vh[0], e.centroid),
                                 view_holes=None if vh is None else vh[1], distance=self.cfg.look_again_distance,
                                 max_path=self.cfg.look_again_max_path)
+
+    def _trip_geometry(self, e: ObjectEntry, v) -> dict:
+        """Where a trip looks from, relative to what was seen (diagnosis only; nothing decides on
+        it): the viewpoint's azimuth around ``e`` (deg) and distance (m), the azimuths (deg) and
+        distances (m) of the cameras of ``e``'s stored observations and earlier trips, the
+        smallest azimuth gap between the viewpoint and those (deg), and the azimuth of the NVSM
+        camera that gave ``e``'s e_max (None when a camera crop gave it)."""
+        c = np.asarray(e.centroid, np.float64)
+        frames = self.observations[e.id] if self.observations is not None else []
+        eyes = [camera_pose(np.asarray(f.viewmat, np.float64))[0] for f in frames]
+        seen = [float(np.arctan2(p[1] - c[1], p[0] - c[0])) for p in eyes] + self._looked_from.get(e.id, [])
+        gap = float(np.min(np.abs(wrap_angle(np.asarray(seen) - v.azimuth)))) if seen else None
+        best = None
+        if e.best_viewmat is not None:
+            p = camera_pose(np.asarray(e.best_viewmat, np.float64))[0]
+            best = round(float(np.degrees(np.arctan2(p[1] - c[1], p[0] - c[0]))), 1)
+        return {"view_az_deg": round(float(np.degrees(v.azimuth)), 1),
+                "view_dist_m": round(float(np.hypot(*(np.asarray(v.xy) - c[:2]))), 2),
+                "seen_az_deg": [round(float(np.degrees(a)), 1) for a in seen],
+                "seen_dist_m": [round(float(np.hypot(*(p[:2] - c[:2]))), 2) for p in eyes],
+                "gap_deg": None if gap is None else round(float(np.degrees(gap)), 1), "best_az_deg": best}
 
     def _begin(self, kind: str, cands: list[ObjectEntry], pose: np.ndarray, step: int) -> dict | None:
         """Begin a trip of ``kind`` ("look", "rival" or "confirm") to the first of ``cands`` that has a
@@ -231,8 +255,10 @@ class SearchPolicy:
                                       "e_max_before": float(e.e_max), "e_max_after": float(e.e_max),
                                       "count_new": None})
                 continue
+            geometry = self._trip_geometry(e, v)
             self._looked_from.setdefault(e.id, []).append(v.azimuth)
-            return {"kind": kind, "entry": e.id, "xy": v.xy, "start": int(step), "path": v.path, "e_max": e.e_max}
+            return {"kind": kind, "entry": e.id, "xy": v.xy, "start": int(step), "path": v.path, "e_max": e.e_max,
+                    "geometry": geometry}
         return None
 
     def _start_look(self, pose: np.ndarray, step: int) -> dict | None:

@@ -58,7 +58,9 @@ class Verifier:
     :attr:`view_holes` (entry id -> (cameras (V, 4, 4), fraction of each render left empty) of its
     latest run, for the look-again step) and :attr:`step_counts` (entry id -> the largest count,
     camera-image scale, recorded for it since :meth:`new_step`: what the current frame alone says,
-    which the confirm trip decides on).
+    which the confirm trip decides on) and, for diagnosis only, :attr:`count_log` (entry id -> a
+    list of [step, "crop" or "nvsm", count] of every non-zero count recorded for it, camera-image
+    scale; the step as :meth:`new_step` counts them, the policy's step index).
     """
 
     def __init__(self, goal: np.ndarray, K: np.ndarray, width: int, height: int, config: AgentConfig,
@@ -80,13 +82,18 @@ class Verifier:
         self.last_views: NovelViews | None = None
         self.view_holes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.step_counts: dict[int, float] = {}
+        self.count_log: dict[int, list] = {}
+        self._step = 0
 
     def new_step(self) -> None:
         """Forget :attr:`step_counts` (the agent calls this before it senses a new frame)."""
         self.step_counts = {}
+        self._step += 1
 
-    def _note(self, entry_id: int, count: float) -> None:
+    def _note(self, entry_id: int, count: float, kind: str = "crop") -> None:
         self.step_counts[entry_id] = max(self.step_counts.get(entry_id, 0.0), float(count))
+        if count > 0:  # zeros are most crops of far objects: kept out so the log stays small
+            self.count_log.setdefault(entry_id, []).append([self._step, kind, round(float(count), 2)])
 
     # -- the decision -----------------------------------------------------------------------
     def colour_confirms(self, e: ObjectEntry) -> bool:
@@ -125,7 +132,7 @@ class Verifier:
         (H, W) bool; ``MATCH_CROP_MARGIN`` of context) and record the count; returns it."""
         n = int(self.matcher.count(self.goal, crop_around(rgb, mask, margin=MATCH_CROP_MARGIN)))
         db.record_match(entry_id, float(n), 0, self.cfg.tau_m, nvsm_run=self.strategy.observation_match_is_nvsm)
-        self._note(entry_id, n)
+        self._note(entry_id, n, "crop")
         return n
 
     def verify(self, db: ObjectDB, entry_id: int, observations: ObservationStore,
@@ -147,7 +154,7 @@ class Verifier:
         # on the camera-image scale, so eq 18's tau_m and eq 20's scores treat both kinds alike
         scaled = float(score.e_max) * cfg.tau_m / cfg.nvsm_tau_m
         db.record_match(entry_id, scaled, score.i_star, cfg.tau_m, score.viewmats[score.i_star])
-        self._note(entry_id, scaled)
+        self._note(entry_id, scaled, "nvsm")
         self.nvsm_runs += 1
         self.last_views = NovelViews(entry_id, score.viewmats, score.rendered, score.images, score.counts, score.i_star)
         empty = (holes_from_alpha(score.alpha, self.nvsm_config.alpha_tau) if score.alpha is not None
