@@ -59,7 +59,8 @@ class HumanWalkerConfig:
     shifts of the route (m, + = left); speeds: speed factors; horizon: rollout steps; shift_length:
     arc length (m) over which a shift is blended in (or shift_time s when it walks slower); personal, intimate: Hall's zones (m, edge to
     edge); perceive: react only to people it has seen (robot's range and line of sight),
-    False: to everyone (omniscient); sense_range: that range (m, the robot's 8 m); oncoming_cone: a person counts as oncoming (to be passed on the right) when walking
+    False: to everyone (omniscient); sense_range: that range (m, the robot's 8 m);
+    oncoming_cone: a person counts as oncoming (to be passed on the right) when walking
     within this angle (rad, 25°) of head-on; group_margin: distance (m) from the line between two group members below which the
     walker would split them; w_*: cost weights."""
 
@@ -255,8 +256,9 @@ def walker_cost(pos, speed, off, world: WalkerWorld, people, people_vel, active,
 def walker_step(carry: WalkerCarry, world: WalkerWorld, seed_key, cfg: HumanWalkerConfig,
                 sf: pedsim.SocialForceConfig):
     """One step of the walker (perceive, plan over the route, move, then step the people, who see
-    it). Returns the new carry (its ``seen`` (P,) the people known when this step planned), the command (v, ω), the chosen candidate (H, 2), the people's
-    contacts with the robot (P,) and whether the move was refused (wall)."""
+    it). Returns the new carry (its ``seen`` (P,): the people known when this step planned), the
+    command (v, ω), the chosen candidate (H, 2), the people's contacts with the robot (P,) and
+    whether the move was refused (wall)."""
     pose, vel, peds = carry.pose, carry.vel, carry.peds
     if cfg.perceive:
         # a teleoperator reacts to someone only once the robot could see them, and remembers them
