@@ -60,7 +60,9 @@ def along_reference(scenario: str, seed: int, steps: list[int], cache=None, carr
     for t in range(last + 1):
         if t in steps and t >= 1:
             off = float(ref.shifts[t]) if carry_shift and ref.shifts is not None else None
-            cap = expert_action(scn, ref.robot[t], ref.cmds[t - 1], peds, t, offset=off)
+            # the perceiving walker forked here knows whom the reference knew (stop 46)
+            known = ref.detected[t - 1] if ref.planner == "human" else None
+            cap = expert_action(scn, ref.robot[t], ref.cmds[t - 1], peds, t, offset=off, seen=known)
             own = action_of(future_in_frame(poses, t, np.asarray(ref.robot[t], np.float64)))
             p = np.asarray(peds.pos)[0]
             out.append({"seed": seed, "t": t, "time_s": round(t * scn.dt, 2),

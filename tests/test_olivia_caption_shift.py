@@ -88,11 +88,17 @@ def test_fill_buffer_hands_each_episode_its_reference_shift(monkeypatch):
 
 
 @pytest.mark.slow  # the reference walker's doorway episode and two 4-s rollouts (~1-2 min alone)
-def test_captioner_keeps_the_head_on_sidestep_the_reference_chose(tmp_path):
+def test_captioner_keeps_the_head_on_sidestep_the_reference_chose(tmp_path, monkeypatch):
     """Dev doorway seed 309 at 2.0 s: the reference has begun its sidestep right (shift -0.6 m) and
     keeps right; the captioner forked with no shift said keep left (stop 44), with the reference's
-    shift it says what the reference does."""
+    shift it says what the reference does. Checked on the omniscient walker: the perceiving one
+    (the default since stop 46) does not see the person before 2.1 s there and passes them on the
+    left, so 309 holds no sidestep to keep."""
     import olivia_caption_vs_reference as cr
+
+    from splatsearch.social.convoi import runner
+
+    monkeypatch.setattr(runner, "REFERENCE", "human_omniscient")
 
     from splatsearch.social.olivia.baseline_cache import BaselineCache
 

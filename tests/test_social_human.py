@@ -88,3 +88,38 @@ def test_walker_lets_a_diagonal_walker_by_and_clears_a_door_post():
     assert res.reached and int(res.robot_contacts.sum()) == 0 and res.wall_hits == 0
     assert res.robot[:, 1].min() > -0.5  # it no longer crosses to the right of the person's path
     assert min_distance_to_people(res.robot[:, :2], res.people, res.active, 0.25, 0.25) > 0.3
+
+
+def hidden_door_scene(seed=0):
+    """The door scene, but the person starts behind the door's wall (at (8, 2.5), out of the robot's
+    line of sight through the 1.1 m door) and walks to the door and through it toward the robot."""
+    caps = _box(-1.5, -4.0, 12.5, 4.0) + [_wall(5.0, -4.0, 5.0, -0.55), _wall(5.0, 0.55, 5.0, 4.0)]
+    pos = [[8.0, 2.5]]
+    goals = [[[6.0, 0.2], [4.2, 0.0], [1.0, -2.5]]]
+    return _scn("doorway", seed, caps, [3.2, 0.0, 0.0], [9.0, 0.0], pos, goals, [0.9], max_steps=300)
+
+
+def test_a_person_behind_a_wall_changes_nothing_until_the_walker_could_see_them():
+    import dataclasses
+
+    from splatsearch.social.convoi.perception import visible_people
+
+    scn = hidden_door_scene()
+    res = run_walker(scn)
+    assert res.reached and int(res.robot_contacts.sum()) == 0 and res.wall_hits == 0
+    # the same scene with the person switched off: the walker's path is the same up to the step
+    # at which the robot could first see the person (range and line of sight)
+    empty = dataclasses.replace(scn, peds=scn.peds._replace(active=np.zeros_like(scn.peds.active)), _cache={})
+    alone = run_walker(empty)
+    caps, valid = scn.padded_capsules()
+    vis = np.array([bool(np.asarray(visible_people(res.robot[t], res.people[t], scn.peds.active, caps, valid))[0])
+                    for t in range(len(res.robot))])
+    first = int(np.argmax(vis))
+    assert vis.any() and first >= 5  # hidden at the start, seen later
+    np.testing.assert_array_equal(res.detected[:first, 0], False)
+    assert res.detected[first, 0]  # known from the first step it is visible
+    np.testing.assert_allclose(res.robot[: first + 1], alone.robot[: first + 1], atol=1e-6)
+    # the omniscient walker (the reference before stop 46) does react to the hidden person earlier
+    omni = run_walker(scn, cfg=HumanWalkerConfig(perceive=False))
+    assert omni.planner == "human_omniscient" and np.all(omni.detected[:, 0])
+    assert np.abs(omni.robot[: first + 1, :2] - alone.robot[: first + 1, :2]).max() > 1e-3

@@ -16,6 +16,12 @@ alternative), which scores 3-s arcs of constant (v, ω), it plans *along the who
   space (Hall's 1.2 m, steep below 0.45 m), passing oncoming people on the right (right-hand
   traffic: they go by on the walker's left), never between the members of a group, clearance
   from walls, and not changing its mind (hysteresis).
+* **Perception** (stop 46, ``perceive``, the default): it reacts only to the people it has seen,
+  with the robot's own test (:func:`~splatsearch.social.convoi.perception.visible_people`: within
+  ``sense_range`` m and in line of sight past the walls). Once seen, a person stays known (a
+  teleoperator remembers someone who stepped behind a wall). People never seen add no cost, no
+  passing side and no group line. ``perceive=False`` is the omniscient walker of stops 33-45
+  (``"human_omniscient"``: the "expert with full knowledge").
 * **Yielding**: in a 1 m door the candidates that enter while someone is coming through meet them
   in the door at any lateral shift, so standing aside / waiting wins until the door is free.
 
@@ -37,6 +43,7 @@ import numpy as np
 from . import pedsim
 from .dwa import step_unicycle
 from .geometry import F32, DistanceField, field_lookup, point_segment_distance
+from .perception import visible_people
 from .scenarios import PERSON_RADIUS, ROBOT_RADIUS, Scenario, resample_polyline
 
 MAX_ROUTE = 512
@@ -51,7 +58,9 @@ class HumanWalkerConfig:
     a walker accepts in a turn (m/s²) and a_dec: its braking (m/s²) for corners; offsets: lateral
     shifts of the route (m, + = left); speeds: speed factors; horizon: rollout steps; shift_length:
     arc length (m) over which a shift is blended in (or shift_time s when it walks slower); personal, intimate: Hall's zones (m, edge to
-    edge); oncoming_cone: a person counts as oncoming (to be passed on the right) when walking
+    edge); perceive: react only to people it has seen (robot's range and line of sight),
+    False: to everyone (omniscient); sense_range: that range (m, the robot's 8 m);
+    oncoming_cone: a person counts as oncoming (to be passed on the right) when walking
     within this angle (rad, 25°) of head-on; group_margin: distance (m) from the line between two group members below which the
     walker would split them; w_*: cost weights."""
 
@@ -80,6 +89,8 @@ class HumanWalkerConfig:
     lookahead: float = 0.45
     k_heading: float = 2.5
     oncoming_cone: float = 0.44
+    perceive: bool = True
+    sense_range: float = 8.0
 
 
 class Route(NamedTuple):
@@ -159,6 +170,9 @@ class WalkerCarry(NamedTuple):
     peds: pedsim.PedState
     t_index: jax.Array
     offset: jax.Array  # the lateral shift chosen last (m)
+    # (P,) bool: people the walker has seen so far (perceive=True); None: nobody yet (the first
+    # step fills it from what is visible at the start)
+    seen: jax.Array | None = None
 
 
 def candidates(route: Route, s0, l0, v0, cfg: HumanWalkerConfig):
@@ -241,18 +255,29 @@ def walker_cost(pos, speed, off, world: WalkerWorld, people, people_vel, active,
 @partial(jax.jit, static_argnames=("cfg", "sf"))
 def walker_step(carry: WalkerCarry, world: WalkerWorld, seed_key, cfg: HumanWalkerConfig,
                 sf: pedsim.SocialForceConfig):
-    """One step of the walker (plan over the route, move, then step the people, who see it).
-    Returns the new carry, the command (v, ω), the chosen candidate (H, 2), the people's
-    contacts with the robot (P,) and whether the move was refused (wall)."""
+    """One step of the walker (perceive, plan over the route, move, then step the people, who see
+    it). Returns the new carry (its ``seen`` (P,): the people known when this step planned), the
+    command (v, ω), the chosen candidate (H, 2), the people's contacts with the robot (P,) and
+    whether the move was refused (wall)."""
     pose, vel, peds = carry.pose, carry.vel, carry.peds
+    if cfg.perceive:
+        # a teleoperator reacts to someone only once the robot could see them, and remembers them
+        vis = visible_people(pose, peds.pos, peds.active, world.capsules, world.capsules_valid, cfg.sense_range)
+        seen = vis if carry.seen is None else carry.seen | vis
+    else:
+        seen = jnp.ones_like(peds.active) if carry.seen is None else jnp.ones_like(carry.seen)
+    known = peds.active & seen
+    pv = world.pairs_valid & known[world.pairs[:, 0]] & known[world.pairs[:, 1]]
     heading = jnp.stack([jnp.cos(pose[2]), jnp.sin(pose[2])])
+    # the forecast still forks the whole simulator (unseen people may push seen ones), but only
+    # the known people's futures enter the cost below
     fut = pedsim.forecast(peds, world.capsules, world.capsules_valid, pose[:2], vel[0] * heading, seed_key,
                           carry.t_index, cfg.horizon, sf)
     fut_vel = jnp.diff(jnp.concatenate([peds.pos[None], fut]), axis=0) / sf.dt
     s0, l0 = project(world.route, pose[:2])
     pos, speed, off, fac = candidates(world.route, s0, l0, vel[0], cfg)
     pos = pos.at[:, 0].set(pos[:, 0])
-    cost = walker_cost(pos, speed, off, world, fut, fut_vel, peds.active, carry.offset, s0, cfg)
+    cost = walker_cost(pos, speed, off, world._replace(pairs_valid=pv), fut, fut_vel, known, carry.offset, s0, cfg)
     k = jnp.argmin(cost)
     path = pos[k]
     # track: the point ``lookahead`` m ahead on the chosen candidate, at its speed
@@ -282,7 +307,7 @@ def walker_step(carry: WalkerCarry, world: WalkerWorld, seed_key, cfg: HumanWalk
     robot_vel = new_vel[0] * jnp.stack([jnp.cos(new_pose[2]), jnp.sin(new_pose[2])])
     peds2, info = pedsim.step(peds, world.capsules, world.capsules_valid, new_pose[:2], robot_vel,
                               pedsim.step_key(seed_key, carry.t_index), sf)
-    new = WalkerCarry(new_pose.astype(F32), new_vel.astype(F32), peds2, carry.t_index + 1, off[k])
+    new = WalkerCarry(new_pose.astype(F32), new_vel.astype(F32), peds2, carry.t_index + 1, off[k], seen)
     return new, cmd, path, info.robot_contact, hit
 
 
@@ -311,16 +336,19 @@ def make_walker_world(scn: Scenario, cfg: HumanWalkerConfig = HumanWalkerConfig(
 def run_walker(scn: Scenario, *, max_steps: int | None = None, cfg: HumanWalkerConfig = HumanWalkerConfig(),
                sf: pedsim.SocialForceConfig | None = None):
     """The walker's episode in ``scn`` as an :class:`~splatsearch.social.convoi.runner.EpisodeResult`
-    (planner ``"human"``). Deterministic for a given scenario seed."""
+    (planner ``"human"``, or ``"human_omniscient"`` when ``cfg.perceive`` is False); its
+    ``detected`` (T, P) holds the people the walker knew when planning each step. Deterministic
+    for a given scenario seed."""
     from .runner import GOAL_TOLERANCE, EpisodeResult
 
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     world = make_walker_world(scn, cfg)
     seed_key = jax.random.PRNGKey(scn.seed)
     carry = WalkerCarry(jnp.asarray(scn.start, F32), jnp.zeros(2, F32), scn.peds, jnp.asarray(0, jnp.int32),
-                        jnp.asarray(0.0, F32))
+                        jnp.asarray(0.0, F32), jnp.zeros_like(scn.peds.active))
     n = scn.max_steps if max_steps is None else int(max_steps)
     poses, people, cmds, contacts = [np.asarray(scn.start, np.float32)], [np.asarray(scn.peds.pos)], [], []
+    known = []
     shifts = [0.0]
     wall_hits = 0
     reached = False
@@ -334,6 +362,7 @@ def run_walker(scn: Scenario, *, max_steps: int | None = None, cfg: HumanWalkerC
         people.append(np.asarray(carry.peds.pos))
         cmds.append(np.asarray(cmd))
         shifts.append(float(carry.offset))
+        known.append(np.asarray(carry.seen))
         contacts.append(int(np.asarray(contact).sum()))
         wall_hits += bool(hit)
         if np.linalg.norm(pose[:2] - scn.goal) < GOAL_TOLERANCE:
@@ -341,29 +370,35 @@ def run_walker(scn: Scenario, *, max_steps: int | None = None, cfg: HumanWalkerC
             break
     T = len(cmds)
     P = len(np.asarray(scn.peds.active))
-    return EpisodeResult(scn.name, "human", scn.seed, np.asarray(poses), np.asarray(cmds).reshape(T, 2),
-                         np.asarray(people), np.asarray(scn.peds.active), np.ones((T, P), bool),
+    return EpisodeResult(scn.name, "human" if cfg.perceive else "human_omniscient", scn.seed, np.asarray(poses),
+                         np.asarray(cmds).reshape(T, 2), np.asarray(people), np.asarray(scn.peds.active),
+                         np.asarray(known, bool).reshape(T, P) & np.asarray(scn.peds.active)[None],
                          np.arange(T + 1) * scn.dt, np.asarray(scn.goal), np.asarray(scn.start), reached, 0,
                          np.asarray(contacts), wall_hits, 0, 1e3 * (time.perf_counter() - t0) / max(T - 1, 1), {},
                          scn.dt, np.asarray(shifts, np.float32))
 
 
 def walker_rollout(scn: Scenario, pose, vel, peds: pedsim.PedState, t_index: int, n_steps: int,
-                   cfg: HumanWalkerConfig = HumanWalkerConfig(), offset: float = 0.0) -> np.ndarray:
+                   cfg: HumanWalkerConfig = HumanWalkerConfig(), offset: float = 0.0,
+                   seen: np.ndarray | None = None) -> np.ndarray:
     """The walker's poses (k + 1, 3), k <= n_steps, forked from an arbitrary state (pose (3,),
     vel (2,) = (v, ω), the people, the scenario step): what the reference would do from there.
 
     ``offset`` (m, + = left): the lateral shift the walker holds when forked (its hysteresis,
     ``w_change``, is measured from it). 0 is a walker that has not chosen a side; the reference
     episode's own shift at that step (:attr:`EpisodeResult.shifts`) forks the walker that made
-    the reference's choices, which keeps a sidestep it already began."""
+    the reference's choices, which keeps a sidestep it already began.
+
+    ``seen`` (P,) bool: the people the forked walker already knows (with ``cfg.perceive``); None:
+    only those visible from ``pose`` (it learns of the others as it walks)."""
     from .runner import GOAL_TOLERANCE
 
     sf = pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     world = make_walker_world(scn, cfg)
     seed_key = jax.random.PRNGKey(scn.seed)
+    known = jnp.zeros_like(peds.active) if seen is None else jnp.asarray(np.asarray(seen, bool))
     carry = WalkerCarry(jnp.asarray(pose, F32), jnp.asarray(vel, F32), peds, jnp.asarray(int(t_index), jnp.int32),
-                        jnp.asarray(float(offset), F32))
+                        jnp.asarray(float(offset), F32), known)
     out = [np.asarray(pose, np.float32)]
     for _ in range(int(n_steps)):
         carry, *_ = walker_step(carry, world, seed_key, cfg, sf)

@@ -8,7 +8,9 @@ Planners (:data:`PLANNERS`):
   from :class:`splatsearch.social.convoi.CoNVOI` (context, marked image, VLM, extrapolation, re-query).
 * ``human``: the human-like reference walker (:mod:`.human`): plans over the whole route with the
   people's privileged future, walker's preferences (lanes, personal space, passing side, groups,
-  corners, doors); the reference of OLiVia-Nav's tables.
+  corners, doors); the reference of OLiVia-Nav's tables. It reacts to a person only once the
+  robot could see them (range and line of sight, as the robot's perception); ``human_omniscient``
+  is the same walker reacting to everyone from the start (the reference of stops 33-45).
 * ``expert``: the DWA-with-critics "teleoperation" reference (the alternative): a privileged, socially compliant DWA that
   knows every pedestrian's future (it forks the simulator every step), keeps out of personal
   space (1 m), never cuts between group members, and keeps right on a lane-shifted global path
@@ -50,7 +52,10 @@ from .scenarios import (
     smooth_polyline,
 )
 
-PLANNERS = ("dwa", "convoi", "expert", "human")
+PLANNERS = ("dwa", "convoi", "expert", "human", "human_omniscient")
+#: the reference walkers (:mod:`.human`): "human" reacts to people once the robot could see them
+#: (the default since stop 46), "human_omniscient" to everyone from the start
+WALKERS = ("human", "human_omniscient")
 #: the reference of OLiVia-Nav's Tables I-II and of its training data (:mod:`.human`); "expert" is the
 #: DWA-with-critics alternative
 REFERENCE = "human"
@@ -254,10 +259,10 @@ def run_episode(scn: Scenario, kind: str, *, convoi=None, observer=None, max_ste
     """
     if kind not in PLANNERS:
         raise ValueError(f"unknown planner {kind!r}; choose from {PLANNERS}")
-    if kind == "human":
-        from .human import run_walker
+    if kind in WALKERS:
+        from .human import HumanWalkerConfig, run_walker
 
-        return run_walker(scn, max_steps=max_steps, sf=sf)
+        return run_walker(scn, max_steps=max_steps, sf=sf, cfg=HumanWalkerConfig(perceive=kind == "human"))
     if kind == "convoi" and convoi is None:
         raise ValueError("kind='convoi' needs a CoNVOI instance (splatsearch.social.convoi.CoNVOI)")
     cfg = planner_config(kind)
@@ -357,5 +362,5 @@ def people_gaps(res: EpisodeResult) -> np.ndarray:
     return d.min(1) if d.shape[1] else np.full(len(d), np.inf)
 
 
-__all__ = ["PLANNERS", "REFERENCE", "Carry", "EpisodeResult", "StepOut", "World", "carrot", "control_step", "expert_rollout", "lane_path",
+__all__ = ["PLANNERS", "REFERENCE", "WALKERS", "Carry", "EpisodeResult", "StepOut", "World", "carrot", "control_step", "expert_rollout", "lane_path",
            "make_world", "min_wall_clearance", "people_gaps", "planner_config", "run_episode"]

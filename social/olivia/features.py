@@ -137,7 +137,8 @@ def action_of(traj) -> int:
 
 
 def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedState, t_index: int,
-                  world: World | None = None, reference: str | None = None, offset: float | None = None) -> int:
+                  world: World | None = None, reference: str | None = None, offset: float | None = None,
+                  seen: np.ndarray | None = None) -> int:
     """The "correct" high-level action (index into :data:`ACTIONS`) at an arbitrary state: the
     action of the expert's future from there (:func:`splatsearch.social.convoi.runner.expert_rollout`
     over the TPN horizon, continued to the goal when it arrives), labelled like the training
@@ -148,13 +149,17 @@ def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedSta
     judging the view would, whatever the robot then did. ``reference``: whose future
     (default :data:`~splatsearch.social.convoi.runner.REFERENCE`, the human-like walker; ``"expert"``:
     the DWA-with-critics). ``offset`` (m, human walker only): the lateral shift the forked walker
-    holds (:func:`~splatsearch.social.convoi.human.walker_rollout`); None or 0: none chosen yet."""
-    from ..convoi.runner import GOAL_TOLERANCE, REFERENCE, expert_rollout
+    holds (:func:`~splatsearch.social.convoi.human.walker_rollout`); None or 0: none chosen yet.
+    ``seen`` (P,) bool (perceiving walker only): the people the forked walker already knows (the
+    robot's own perception so far); None: those visible from ``pose``."""
+    from ..convoi.runner import GOAL_TOLERANCE, REFERENCE, WALKERS, expert_rollout
 
-    if (reference or REFERENCE) == "human":
-        from ..convoi.human import walker_rollout
+    ref = reference or REFERENCE
+    if ref in WALKERS:
+        from ..convoi.human import HumanWalkerConfig, walker_rollout
 
-        poses = walker_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON, offset=float(offset or 0.0))
+        poses = walker_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON,
+                               HumanWalkerConfig(perceive=ref == "human"), offset=float(offset or 0.0), seen=seen)
     else:
         poses = expert_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON, world)
     if np.linalg.norm(poses[-1, :2] - np.asarray(scn.goal)[:2]) < GOAL_TOLERANCE:

@@ -316,6 +316,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     votes = None
     since = 0
     plan_s, n_plans = 0.0, 0
+    ever_seen = np.zeros(len(np.asarray(scn.peds.active)), bool)  # whom the robot has perceived so far
     from ..convoi.runner import REFERENCE
 
     expert_world = make_world(scn, "expert") if buffer is not None and REFERENCE == "expert" else None
@@ -324,6 +325,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
             tp = max(len(poses) - 1 - PREV_STEPS, 0)
             t0 = time.perf_counter()
             seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))
+            ever_seen |= seen
             vel = (people[-1] - people[tp]) / max((len(poses) - 1 - tp) * scn.dt, scn.dt)
             if route.berth > 0:
                 path = route.update(people[-1], vel, seen, t * scn.dt,
@@ -363,11 +365,12 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                 # take there (the expert's), not the one it chose, which would only teach the
                 # encoders the planner's own mistakes
                 def scene(pose=pose, cmd=cmds[-1] if cmds else np.zeros(2, np.float32), peds=peds, t=t,
-                          people_now=people[-1]):
+                          people_now=people[-1], known=ever_seen.copy()):
                     # a walker forked with no side chosen can undo the reference's sidestep at the
                     # moment it begins (its change cost flips it): fork the one that chose it
                     off = reference_shift(t) if reference_shift is not None else None
-                    act = expert_action(scn, pose, cmd, peds, t, expert_world, offset=off)
+                    # the perceiving walker forked here knows whom the robot has perceived so far
+                    act = expert_action(scn, pose, cmd, peds, t, expert_world, offset=off, seen=known)
                     return caption_scene(scn, pose, people_now, np.asarray(peds.vel), act)
 
                 seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))

@@ -648,12 +648,12 @@ def reference_shift_of(scn, cache: "BaselineCache | None" = None) -> Callable[[i
     on ``scn`` (:attr:`EpisodeResult.shifts`, the last one past its end). The episode is run (or
     read from ``cache``) on the first call only: a lazy buffer captions a few views per seed.
     With the DWA-with-critics reference (no shift) it is always 0."""
-    from ..convoi.runner import REFERENCE
+    from ..convoi.runner import REFERENCE, WALKERS
 
     held: list = []
 
     def shift(t: int) -> float:
-        if REFERENCE != "human":
+        if REFERENCE not in WALKERS:
             return 0.0
         if not held:
             held.append(run_baseline(scn, REFERENCE, cache).shifts)
