@@ -148,10 +148,10 @@ def main(argv=None) -> int:
     p.add_argument("--f2f-along-sigma", type=float, default=d.f2f_along_sigma,
                    help="take only an accepted frame-to-frame step's displacement along the odometry's direction "
                         f"of motion, with this sigma in m (default {d.f2f_along_sigma}: off)")
-    p.add_argument("--f2f-along-fade", action=argparse.BooleanOptionalAction, default=d.f2f_along_fade,
-                   help="with --f2f-along-sigma: keep its precision beyond the odometry's only where the image's "
-                        "information on the forward translation falls short of it "
-                        f"(default {'on' if d.f2f_along_fade else 'off'})")
+    p.add_argument("--f2f-along-fade", type=float, default=d.f2f_along_fade,
+                   help="with --f2f-along-sigma: keep its precision beyond the odometry's only where this scale "
+                        "times the image's information on the forward translation falls short of it "
+                        f"(default {d.f2f_along_fade}: off)")
     p.add_argument("--f2f-retry-depth-diff", type=float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"(default {d.f2f_retry_depth_diff}: no retry)")

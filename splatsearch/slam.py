@@ -204,13 +204,16 @@ class TrackerConfig:
     f2f_retry_depth_diff (m, None: off): a step that OpenCV fails or the gate rejects at
     ``f2f_max_depth_diff`` is tried once more with this ICP correspondence limit (OpenCV starts from
     no motion, so in a turn or a long step most pairs lie beyond 0.07 m; the retry is gated the same
-    way). f2f_along_fade (with ``f2f_along_sigma``; "gn" only): the along-path precision beyond
-    the wheel odometry's own (1 / f2f_along_sigma^2 - 1 / the odometry's along sigma^2) is kept
-    only in the fraction :func:`~splatsearch.tracking_gn.fade_weight` of the image's information
-    on the translation along the path (:attr:`TrackResult.fwd_info`, measured at the prediction
-    with the rest of the pose free): the tight along-path prior then acts where the map render
-    barely fixes the forward motion (a corridor seen along its axis) and fades where the image
-    pins it, so the heading need not absorb a mismatch the translation is held from taking.
+    way). f2f_along_fade (> 0, None: off; with ``f2f_along_sigma``, "gn" only): the along-path
+    precision beyond the wheel odometry's own (prior_weight x (1 / f2f_along_sigma^2 - 1 / the
+    odometry's along sigma^2)) is kept only in the fraction
+    :func:`~splatsearch.tracking_gn.fade_weight` of ``f2f_along_fade`` x the image's information on
+    the translation along the path (:attr:`TrackResult.fwd_info`, measured at the prediction with
+    the rest of the pose free): the tight along-path prior then acts where the map render barely
+    fixes the forward motion (a corridor seen along its axis) and fades where the image pins it,
+    so the heading need not absorb a mismatch the translation is held from taking. The scale
+    calibrates the start pose's information (its IRLS metric, which grows as the loss falls)
+    against the prior's curvature.
     """
 
     iters: int = 40
@@ -258,7 +261,7 @@ class TrackerConfig:
     f2f_trans_sigma: float | None = None
     f2f_along_sigma: float | None = None
     f2f_retry_depth_diff: float | None = None
-    f2f_along_fade: bool = False
+    f2f_along_fade: float | None = None
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -270,6 +273,8 @@ class TrackerConfig:
         if self.f2f_retry_depth_diff is not None and not (self.f2f_retry_depth_diff > 0
                                                           and math.isfinite(self.f2f_retry_depth_diff)):
             raise ValueError(f"f2f_retry_depth_diff must be None or a finite value > 0, got {self.f2f_retry_depth_diff}")
+        if self.f2f_along_fade is not None and not (self.f2f_along_fade > 0 and math.isfinite(self.f2f_along_fade)):
+            raise ValueError(f"f2f_along_fade must be None or a finite value > 0, got {self.f2f_along_fade}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -627,7 +632,8 @@ def odometry_init(margs, rgb, depth, viewmat, K, width: int, height: int, sil_th
 def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int,
           config: TrackerConfig | None = None, *, prior_sigma: tuple[float, float] | None = None,
           prior_precision: np.ndarray | None = None, info_ref: float | None = None,
-          prior_fade: np.ndarray | None = None, fade_axis: np.ndarray | None = None, **overrides) -> TrackResult:
+          prior_fade: np.ndarray | None = None, fade_axis: np.ndarray | None = None, fade_scale: float = 1.0,
+          **overrides) -> TrackResult:
     """Refine the world-to-camera pose of an RGB-D frame against a frozen map.
 
     Args:
@@ -649,8 +655,8 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
             odometry's direction of motion): the "gn" solver measures the image's information on
             it (:attr:`TrackResult.fwd_info`). prior_fade: (6, 6) an extra prior precision on xi
             (prior_weight included) added to the prior in the fraction
-            :func:`~splatsearch.tracking_gn.fade_weight` of that information (``fade_axis``
-            required; "gn" only, Adam leaves it out).
+            :func:`~splatsearch.tracking_gn.fade_weight` of ``fade_scale`` x that information
+            (``fade_axis`` required; "gn" only, Adam leaves it out).
 
     Returns:
         :class:`TrackResult`; on divergence or without overlap its viewmat is ``init_viewmat``.
@@ -698,6 +704,8 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
             raise ValueError(f"prior_precision must be a finite (6, 6) matrix, got shape {pw.shape}")
     elif prior_sigma is not None and cfg.prior_weight > 0:
         pw = diagonal_precision(cfg.prior_weight, *prior_sigma).astype(np.float32)
+    if not (fade_scale > 0 and math.isfinite(fade_scale)):
+        raise ValueError(f"fade_scale must be a finite value > 0, got {fade_scale}")
     pf, axis6 = np.zeros((6, 6), np.float32), np.zeros(6, np.float32)
     if fade_axis is not None:
         ax = np.asarray(fade_axis, np.float64).reshape(3)
@@ -716,7 +724,7 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
     run = _track_fn(levels, cfg)
     vm, loss, loss0, frac0, steps, last, info, fwd_info, wf = run(
         margs, images, jnp.asarray(vm0), jnp.asarray(xi_start), jnp.asarray(pw), jnp.float32(info_ref or 0.0),
-        (jnp.asarray(pf), jnp.asarray(axis6)))
+        (jnp.asarray(pf), jnp.asarray(axis6), jnp.float32(fade_scale)))
     vm, loss, loss0, frac0, last = np.asarray(vm), float(loss), float(loss0), float(frac0), float(last)
     status = "ok"
     if frac0 < cfg.min_valid_frac:
@@ -861,7 +869,7 @@ class SLAM:
                     # OpenCV's distance along the odometry's direction of motion, the odometry's across it
                     step = odometry_f2f.along_step(rel_odo, self._f2f_acc)
                     s_along, s_odo = self.tcfg.f2f_along_sigma, self.tcfg.prior_sigma(rel_odo)[1]
-                    if self.tcfg.f2f_along_fade and s_along < s_odo:
+                    if self.tcfg.f2f_along_fade is not None and s_along < s_odo:
                         # the odometry's own along sigma always; the rest only where the image lacks it
                         fade_axis = step[:3, 3]
                         prior_q[3:, 3:] = self.tcfg.axis_precision(fade_axis, s_odo, self.tcfg.lateral_sigma(rel_odo))
@@ -910,7 +918,8 @@ class SLAM:
             recent = self._rot_info[-self.tcfg.prior_info_window:]
             info_ref = float(np.median(recent)) if len(recent) >= 3 else None
             tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg,
-                       prior_precision=prior_q, info_ref=info_ref, prior_fade=prior_fade, fade_axis=fade_axis)
+                       prior_precision=prior_q, info_ref=info_ref, prior_fade=prior_fade, fade_axis=fade_axis,
+                       fade_scale=self.tcfg.f2f_along_fade or 1.0)
             t_track = tr.seconds
             if tr.status == "ok" and np.isfinite(tr.rot_info):
                 self._rot_info.append(tr.rot_info)

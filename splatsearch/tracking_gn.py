@@ -107,9 +107,9 @@ def make_gn_stage(cfg) -> Callable:
     inside the tracker's jit: p (k,) the start, ``fn`` = (mask_at, loss, value_and_grad of loss,
     residual) of one image level (rgb (H, W, 3), depth (H, W) m), ``pw`` (6, 6) the prior's
     precision on xi, ``info_ref`` the usual rotation information (0: no information weighting);
-    ``fade`` = (pf (6, 6), axis (6,)): an extra prior precision on xi kept in the fraction
-    :func:`fade_weight` of the image's information on ``axis`` (an xi direction; zero: no axis,
-    fwd_info 0 and the weight 0); ``lr_scale`` is unused.
+    ``fade`` = (pf (6, 6), axis (6,), scale): an extra prior precision on xi kept in the fraction
+    :func:`fade_weight` of ``scale`` x the image's information on ``axis`` (an xi direction;
+    zero: no axis, fwd_info 0 and the weight 0); ``lr_scale`` is unused.
     """
     w_c = cfg.w_color
     h_fd = cfg.gn_fd_step
@@ -214,11 +214,11 @@ def make_gn_stage(cfg) -> Callable:
             pw = pw * sq[:, None] * sq[None, :]
         # the image's information on the fade axis, at the start pose, in the loss's own curvature
         # units (comparable with the prior's 2 Q), every other pose direction free
-        pf, axis = fade
+        pf, axis, scale = fade
         v = basis.T @ axis.astype(basis.dtype)
         fwd_info = axis_information(Hd0, v)
         nv = jnp.maximum(jnp.linalg.norm(v), 1e-12)
-        wf = fade_weight(fwd_info, 2.0 * (v @ basis.T @ pf @ basis @ v) / nv ** 2)
+        wf = fade_weight(scale * fwd_info, 2.0 * (v @ basis.T @ pf @ basis @ v) / nv ** 2)
         pw = pw + wf * pf
         Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
 
