@@ -91,6 +91,16 @@ def _lateral(text: str) -> float | None:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _opt_float(text: str) -> float | None:
+    """A float, or "off" / "none" (None: the setting is off)."""
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number or 'off', got {text!r}") from None
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("what", choices=["tum", "sim", "speed"])
@@ -142,17 +152,17 @@ def main(argv=None) -> int:
     p.add_argument("--f2f-max-depth-diff", type=float, default=d.f2f_max_depth_diff,
                    help="OpenCV's ICP correspondence depth limit (m) of the frame-to-frame odometry "
                         f"(default {d.f2f_max_depth_diff:g})")
-    p.add_argument("--f2f-trans-sigma", type=float, default=d.f2f_trans_sigma,
+    p.add_argument("--f2f-trans-sigma", type=_opt_float, default=d.f2f_trans_sigma,
                    help="also take an accepted frame-to-frame step's displacement, with this sigma in m "
                         f"(default {d.f2f_trans_sigma}: rotation only)")
-    p.add_argument("--f2f-along-sigma", type=float, default=d.f2f_along_sigma,
+    p.add_argument("--f2f-along-sigma", type=_opt_float, default=d.f2f_along_sigma,
                    help="take only an accepted frame-to-frame step's displacement along the odometry's direction "
                         f"of motion, with this sigma in m (default {d.f2f_along_sigma}: off)")
-    p.add_argument("--f2f-along-fade", type=float, default=d.f2f_along_fade,
+    p.add_argument("--f2f-along-fade", type=_opt_float, default=d.f2f_along_fade,
                    help="with --f2f-along-sigma: keep its precision beyond the odometry's only where this scale "
                         "times the image's information on the forward translation falls short of it "
                         f"(default {d.f2f_along_fade}: off)")
-    p.add_argument("--f2f-retry-depth-diff", type=float, default=d.f2f_retry_depth_diff,
+    p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"(default {d.f2f_retry_depth_diff}: no retry)")
     p.add_argument("--odometry-seed", type=int, default=None,
