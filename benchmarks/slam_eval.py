@@ -38,7 +38,9 @@ REAL = dict(iters=30, first_iters=60, stride=2, pixel_scale=2.0, fill_holes=True
             lr={"means": 2e-4, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "colors": 1e-2},
             initial_capacity=1 << 15, exposure=True)
 REAL_REFINE = 500
-SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15)
+# pose_lr_trans: with the along-path frame-to-frame prior (the tracker's default since stop 46) the keyframe
+# pose refinement's default 2e-4 m step moves frames back along the path toward the map's drift
+SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15, pose_lr_trans=2e-5)
 
 
 _SET: dict = {}  # --mapper-set overrides, recorded with every run

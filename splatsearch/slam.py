@@ -197,11 +197,16 @@ class TrackerConfig:
     (m): OpenCV's ICP correspondence limit (see :func:`~splatsearch.odometry_f2f.f2f_step`).
     f2f_trans_sigma (m, None: off): an accepted step's camera displacement replaces the wheel
     odometry's too (planar: its horizontal part), with this sigma on each axis. f2f_along_sigma
-    (m, None: off; unused when f2f_trans_sigma is set): only the displacement's component along the
+    (m, default 1e-3 since stop 46, None: off; unused when f2f_trans_sigma is set): only the
+    displacement's component along the
     wheel odometry's direction of motion is taken from an accepted step, with this sigma along that
     direction; across it the wheel odometry's prediction and ``prior_lateral_sigma`` stay
-    (:func:`~splatsearch.odometry_f2f.along_step`; the odometry errs in distance travelled).
-    f2f_retry_depth_diff (m, None: off): a step that OpenCV fails or the gate rejects at
+    (:func:`~splatsearch.odometry_f2f.along_step`; the odometry errs in distance travelled). With
+    ``MapperConfig.pose_refine`` the mapper's keyframe pose refinement has no such prior and at
+    its default translation step (2e-4 m) moves frames back along the path toward the map's drift;
+    the simulator recipe pairs these defaults with ``pose_lr_trans`` 2e-5 (results.md, stop 46).
+    f2f_retry_depth_diff (m, default 0.15 since stop 46, None: off): a step that OpenCV fails or
+    the gate rejects at
     ``f2f_max_depth_diff`` is tried once more with this ICP correspondence limit (OpenCV starts from
     no motion, so in a turn or a long step most pairs lie beyond 0.07 m; the retry is gated the same
     way). f2f_along_fade (> 0, None: off; with ``f2f_along_sigma``, "gn" only): the along-path
@@ -259,8 +264,8 @@ class TrackerConfig:
     f2f_rot_sigma: float = 1e-3
     f2f_max_depth_diff: float = 0.07
     f2f_trans_sigma: float | None = None
-    f2f_along_sigma: float | None = None
-    f2f_retry_depth_diff: float | None = None
+    f2f_along_sigma: float | None = 1e-3
+    f2f_retry_depth_diff: float | None = 0.15
     f2f_along_fade: float | None = None
 
     def validate(self) -> None:
