@@ -38,7 +38,9 @@ REAL = dict(iters=30, first_iters=60, stride=2, pixel_scale=2.0, fill_holes=True
             lr={"means": 2e-4, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "colors": 1e-2},
             initial_capacity=1 << 15, exposure=True)
 REAL_REFINE = 500
-SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15)
+# pose_lr_trans: with the along-path frame-to-frame prior (the tracker's default since stop 46) the keyframe
+# pose refinement's default 2e-4 m step moves frames back along the path toward the map's drift
+SIM = dict(iters=15, first_iters=40, stride=3, pixel_scale=2.0, initial_capacity=1 << 15, pose_lr_trans=2e-5)
 
 
 _SET: dict = {}  # --mapper-set overrides, recorded with every run
@@ -89,6 +91,16 @@ def _lateral(text: str) -> float | None:
         return parse_lateral_sigma(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _opt_float(text: str) -> float | None:
+    """A float, or "off" / "none" (None: the setting is off)."""
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number or 'off', got {text!r}") from None
 
 
 def main(argv=None) -> int:
@@ -142,13 +154,17 @@ def main(argv=None) -> int:
     p.add_argument("--f2f-max-depth-diff", type=float, default=d.f2f_max_depth_diff,
                    help="OpenCV's ICP correspondence depth limit (m) of the frame-to-frame odometry "
                         f"(default {d.f2f_max_depth_diff:g})")
-    p.add_argument("--f2f-trans-sigma", type=float, default=d.f2f_trans_sigma,
+    p.add_argument("--f2f-trans-sigma", type=_opt_float, default=d.f2f_trans_sigma,
                    help="also take an accepted frame-to-frame step's displacement, with this sigma in m "
                         f"(default {d.f2f_trans_sigma}: rotation only)")
-    p.add_argument("--f2f-along-sigma", type=float, default=d.f2f_along_sigma,
+    p.add_argument("--f2f-along-sigma", type=_opt_float, default=d.f2f_along_sigma,
                    help="take only an accepted frame-to-frame step's displacement along the odometry's direction "
                         f"of motion, with this sigma in m (default {d.f2f_along_sigma}: off)")
-    p.add_argument("--f2f-retry-depth-diff", type=float, default=d.f2f_retry_depth_diff,
+    p.add_argument("--f2f-along-fade", type=_opt_float, default=d.f2f_along_fade,
+                   help="with --f2f-along-sigma: keep its precision beyond the odometry's only where this scale "
+                        "times the image's information on the forward translation falls short of it "
+                        f"(default {d.f2f_along_fade}: off)")
+    p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"(default {d.f2f_retry_depth_diff}: no retry)")
     p.add_argument("--odometry-seed", type=int, default=None,
@@ -185,7 +201,8 @@ def main(argv=None) -> int:
                          map_min_info=a.map_min_info, map_skip_max=a.map_skip_max, f2f_prior=a.f2f_prior,
                          f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff,
                          f2f_trans_sigma=a.f2f_trans_sigma, f2f_along_sigma=a.f2f_along_sigma,
-                         f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian)
+                         f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian,
+                         f2f_along_fade=a.f2f_along_fade)
     try:
         tcfg.validate()
     except ValueError as e:

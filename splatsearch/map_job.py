@@ -114,7 +114,9 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
                        "track_cpu_s": round(r.track.cpu_seconds, 4) if r.track else None,
                        "track_steps": r.track.steps if r.track else None,
                        "track_loss": _finite(r.track.loss) if r.track else None,
-                       "track_rot_info": _finite(r.track.rot_info) if r.track else None, "f2f": r.f2f}
+                       "track_rot_info": _finite(r.track.rot_info) if r.track else None,
+                       "track_fwd_info": _finite(r.track.fwd_info) if r.track else None,
+                       "track_fade": _finite(r.track.fade) if r.track else None, "f2f": r.f2f}
                       for i, r in zip(done, slam.results)],
     }
     f2f = [r.f2f for r in slam.results if r.f2f is not None]

@@ -197,14 +197,28 @@ class TrackerConfig:
     (m): OpenCV's ICP correspondence limit (see :func:`~splatsearch.odometry_f2f.f2f_step`).
     f2f_trans_sigma (m, None: off): an accepted step's camera displacement replaces the wheel
     odometry's too (planar: its horizontal part), with this sigma on each axis. f2f_along_sigma
-    (m, None: off; unused when f2f_trans_sigma is set): only the displacement's component along the
+    (m, default 1e-3 since stop 46, None: off; unused when f2f_trans_sigma is set): only the
+    displacement's component along the
     wheel odometry's direction of motion is taken from an accepted step, with this sigma along that
     direction; across it the wheel odometry's prediction and ``prior_lateral_sigma`` stay
-    (:func:`~splatsearch.odometry_f2f.along_step`; the odometry errs in distance travelled).
-    f2f_retry_depth_diff (m, None: off): a step that OpenCV fails or the gate rejects at
+    (:func:`~splatsearch.odometry_f2f.along_step`; the odometry errs in distance travelled). With
+    ``MapperConfig.pose_refine`` the mapper's keyframe pose refinement has no such prior and at
+    its default translation step (2e-4 m) moves frames back along the path toward the map's drift;
+    the simulator recipe pairs these defaults with ``pose_lr_trans`` 2e-5 (results.md, stop 46).
+    f2f_retry_depth_diff (m, default 0.15 since stop 46, None: off): a step that OpenCV fails or
+    the gate rejects at
     ``f2f_max_depth_diff`` is tried once more with this ICP correspondence limit (OpenCV starts from
     no motion, so in a turn or a long step most pairs lie beyond 0.07 m; the retry is gated the same
-    way).
+    way). f2f_along_fade (> 0, None: off; with ``f2f_along_sigma``, "gn" only): the along-path
+    precision beyond the wheel odometry's own (prior_weight x (1 / f2f_along_sigma^2 - 1 / the
+    odometry's along sigma^2)) is kept only in the fraction
+    :func:`~splatsearch.tracking_gn.fade_weight` of ``f2f_along_fade`` x the image's information on
+    the translation along the path (:attr:`TrackResult.fwd_info`, measured at the prediction with
+    the rest of the pose free): the tight along-path prior then acts where the map render barely
+    fixes the forward motion (a corridor seen along its axis) and fades where the image pins it,
+    so the heading need not absorb a mismatch the translation is held from taking. The scale
+    calibrates the start pose's information (its IRLS metric, which grows as the loss falls)
+    against the prior's curvature.
     """
 
     iters: int = 40
@@ -250,8 +264,9 @@ class TrackerConfig:
     f2f_rot_sigma: float = 1e-3
     f2f_max_depth_diff: float = 0.07
     f2f_trans_sigma: float | None = None
-    f2f_along_sigma: float | None = None
-    f2f_retry_depth_diff: float | None = None
+    f2f_along_sigma: float | None = 1e-3
+    f2f_retry_depth_diff: float | None = 0.15
+    f2f_along_fade: float | None = None
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -263,6 +278,8 @@ class TrackerConfig:
         if self.f2f_retry_depth_diff is not None and not (self.f2f_retry_depth_diff > 0
                                                           and math.isfinite(self.f2f_retry_depth_diff)):
             raise ValueError(f"f2f_retry_depth_diff must be None or a finite value > 0, got {self.f2f_retry_depth_diff}")
+        if self.f2f_along_fade is not None and not (self.f2f_along_fade > 0 and math.isfinite(self.f2f_along_fade)):
+            raise ValueError(f"f2f_along_fade must be None or a finite value > 0, got {self.f2f_along_fade}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -362,9 +379,13 @@ class TrackResult:
     steps including rejected ones); rot_info ("gn" only, else NaN): the image's information on
     the rotation with the translation free, at the start pose, per image pixel and independent
     of the residuals' size (the Schur complement of the data metric's translation block, times
-    the data loss, times the trusted fraction); seconds: wall time; cpu_seconds: process
-    CPU time (all threads), which on a shared machine shows the cost better than the wall
-    time."""
+    the data loss, times the trusted fraction); fwd_info ("gn" with a ``fade_axis``, else NaN):
+    the image's information on the translation along that axis with the other pose directions
+    free, at the start pose, in the data loss's curvature units (comparable with twice a prior
+    precision, m^-2; :func:`~splatsearch.tracking_gn.axis_information`); fade: the fraction of
+    ``prior_fade`` kept (:func:`~splatsearch.tracking_gn.fade_weight`; 0 without one); seconds:
+    wall time; cpu_seconds: process CPU time (all threads), which on a shared machine shows the
+    cost better than the wall time."""
 
     viewmat: np.ndarray
     loss: float
@@ -375,6 +396,8 @@ class TrackResult:
     cpu_seconds: float = 0.0
     steps: int = 0
     rot_info: float = float("nan")
+    fwd_info: float = float("nan")
+    fade: float = 0.0
 
 
 _TRACK_FNS: dict = {}
@@ -443,8 +466,9 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
     fns = [make_level(Kb, W, H) for Kb, W, H, _, _ in levels]
     gn_stage = make_gn_stage(cfg)
 
-    def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref):
-        """Adam steps from p on one level; returns (best p, its loss, steps run)."""
+    def stage(p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref, fade):
+        """Adam steps from p on one level; returns (best p, its loss, steps run, ...). The faded prior
+        (``fade``) is a Levenberg-Marquardt feature: Adam leaves it out (weight 0)."""
         mask_at, loss, vg, *_ = fn
         mf = mask_at(basis @ p, margs, depth, vm_ref)
         decay = jnp.log(jnp.float32(cfg.lr_final)) / max(n_steps - 1, 1)
@@ -472,25 +496,26 @@ def _track_fn(levels: tuple, cfg: TrackerConfig):
         last = loss(p_last, margs, rgb, depth, vm_ref, basis, mf, pw)  # the last update is not scored yet
         better = last < best_loss
         return (jnp.where(better, p_last, best_p), jnp.where(better, last, best_loss), k, mf, last,
-                jnp.float32(jnp.nan), jnp.float32(jnp.nan))
+                jnp.float32(jnp.nan), jnp.float32(jnp.nan), jnp.float32(jnp.nan), jnp.float32(0.0))
 
     @jax.jit
     @full_precision
-    def run(margs, images, vm_ref, xi_start, pw, info_ref):
+    def run(margs, images, vm_ref, xi_start, pw, info_ref, fade):
         basis = planar_basis(vm_ref) if planar else jnp.eye(6, dtype=jnp.float32)
         p0 = basis.T @ xi_start  # the basis is orthonormal
         p, steps, frac0 = p0, jnp.int32(0), None
         for (rgb, depth), fn, (_, _, _, n_steps, lr_scale) in zip(images, fns, levels):
-            p, best_loss, k, mf, last, info, start = (gn_stage if cfg.solver == "gn" else stage)(
-                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref)
+            p, best_loss, k, mf, last, info, start, fwd_info, wf = (gn_stage if cfg.solver == "gn" else stage)(
+                p, n_steps, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref, fade)
             frac0 = mf.mean() if frac0 is None else frac0  # the first stage's pixels are chosen at p0
             steps = steps + k
         rgb, depth = images[-1]
         if len(levels) == 1 and cfg.solver == "gn" and cfg.prior_info_max <= 1:
             loss0 = start  # the stage's own loss at p0 on its pixels: no extra render
         else:
-            loss0 = fns[-1][1](p0, margs, rgb, depth, vm_ref, basis, mf, pw)  # on the last stage's pixels
-        return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last, info
+            # on the last stage's pixels, with the faded prior's share that stage kept
+            loss0 = fns[-1][1](p0, margs, rgb, depth, vm_ref, basis, mf, pw + wf * fade[0])
+        return perturb_viewmat(vm_ref, basis @ p), best_loss, loss0, frac0, steps, last, info, fwd_info, wf
 
     if len(_TRACK_FNS) > 8:
         _TRACK_FNS.pop(next(iter(_TRACK_FNS)))
@@ -611,7 +636,9 @@ def odometry_init(margs, rgb, depth, viewmat, K, width: int, height: int, sil_th
 
 def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: int,
           config: TrackerConfig | None = None, *, prior_sigma: tuple[float, float] | None = None,
-          prior_precision: np.ndarray | None = None, info_ref: float | None = None, **overrides) -> TrackResult:
+          prior_precision: np.ndarray | None = None, info_ref: float | None = None,
+          prior_fade: np.ndarray | None = None, fade_axis: np.ndarray | None = None, fade_scale: float = 1.0,
+          **overrides) -> TrackResult:
     """Refine the world-to-camera pose of an RGB-D frame against a frozen map.
 
     Args:
@@ -629,6 +656,12 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
             rotation information (:attr:`TrackResult.rot_info` of earlier frames; None or 0: the
             prior is used as given). A frame whose ``rot_info`` is below it has the prior's
             rotation precision raised by ``info_ref / rot_info``, at most ``prior_info_max``.
+        fade_axis: (3,) a translation direction in the camera frame (any length; e.g. the
+            odometry's direction of motion): the "gn" solver measures the image's information on
+            it (:attr:`TrackResult.fwd_info`). prior_fade: (6, 6) an extra prior precision on xi
+            (prior_weight included) added to the prior in the fraction
+            :func:`~splatsearch.tracking_gn.fade_weight` of ``fade_scale`` x that information
+            (``fade_axis`` required; "gn" only, Adam leaves it out).
 
     Returns:
         :class:`TrackResult`; on divergence or without overlap its viewmat is ``init_viewmat``.
@@ -676,12 +709,27 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
             raise ValueError(f"prior_precision must be a finite (6, 6) matrix, got shape {pw.shape}")
     elif prior_sigma is not None and cfg.prior_weight > 0:
         pw = diagonal_precision(cfg.prior_weight, *prior_sigma).astype(np.float32)
+    if not (fade_scale > 0 and math.isfinite(fade_scale)):
+        raise ValueError(f"fade_scale must be a finite value > 0, got {fade_scale}")
+    pf, axis6 = np.zeros((6, 6), np.float32), np.zeros(6, np.float32)
+    if fade_axis is not None:
+        ax = np.asarray(fade_axis, np.float64).reshape(3)
+        if not (np.all(np.isfinite(ax)) and np.linalg.norm(ax) > 0):
+            raise ValueError(f"fade_axis must be a finite non-zero (3,) vector, got {fade_axis}")
+        axis6[3:] = ax / np.linalg.norm(ax)
+    if prior_fade is not None:
+        if fade_axis is None:
+            raise ValueError("prior_fade needs fade_axis (the direction whose information fades it)")
+        pf = np.asarray(prior_fade, np.float32)
+        if pf.shape != (6, 6) or not np.all(np.isfinite(pf)):
+            raise ValueError(f"prior_fade must be a finite (6, 6) matrix, got shape {pf.shape}")
     levels = tuple((np.asarray(k, np.float32).tobytes(), int(w), int(h), int(n), float(lr))
                    for _, _, k, w, h, n, lr in stages)
     images = tuple((jnp.asarray(r, jnp.float32), jnp.asarray(d, jnp.float32)) for r, d, *_ in stages)
     run = _track_fn(levels, cfg)
-    vm, loss, loss0, frac0, steps, last, info = run(margs, images, jnp.asarray(vm0), jnp.asarray(xi_start),
-                                              jnp.asarray(pw), jnp.float32(info_ref or 0.0))
+    vm, loss, loss0, frac0, steps, last, info, fwd_info, wf = run(
+        margs, images, jnp.asarray(vm0), jnp.asarray(xi_start), jnp.asarray(pw), jnp.float32(info_ref or 0.0),
+        (jnp.asarray(pf), jnp.asarray(axis6), jnp.float32(fade_scale)))
     vm, loss, loss0, frac0, last = np.asarray(vm), float(loss), float(loss0), float(frac0), float(last)
     status = "ok"
     if frac0 < cfg.min_valid_frac:
@@ -696,7 +744,8 @@ def track(gmap: GaussianMap, rgb, depth, init_viewmat, K, width: int, height: in
         if ang > cfg.max_rot or dist > cfg.max_trans:
             status, vm = "diverged", vm0
     return TrackResult(vm.astype(np.float32), loss, loss0, frac0, status, time.perf_counter() - t0,
-                       time.process_time() - c0, int(steps), float(info))
+                       time.process_time() - c0, int(steps), float(info),
+                       float(fwd_info) if fade_axis is not None else float("nan"), float(wf))
 
 
 # --------------------------------------------------------------------------------------------
@@ -805,11 +854,13 @@ class SLAM:
         first = not any(r.mapped for r in self.results)
         pred = self.predict(odometry)
         # the odometry's motion since the last frame: how far the prediction can be trusted
-        prior_q = rel_odo = None
+        prior_q = rel_odo = prior_fade = fade_axis = None
         if odometry is not None and self._last_odom is not None and np.all(np.isfinite(odometry)) \
                 and self.tcfg.prior_weight > 0:
             rel_odo = np.asarray(odometry, np.float64) @ np.linalg.inv(self._last_odom)
             prior_q = self.tcfg.prior_precision(rel_odo)
+            if np.linalg.norm(rel_odo[:3, 3]) > 1e-3:  # the image's information along the motion is logged
+                fade_axis = rel_odo[:3, 3]
         f2f_status = None
         if prior_q is not None and prior is None and self.track_enabled and not first and self.tcfg.f2f_prior:
             self._f2f_link_to(rgb, depth, odometry)
@@ -822,8 +873,16 @@ class SLAM:
                         and np.linalg.norm(rel_odo[:3, 3]) > 1e-3:
                     # OpenCV's distance along the odometry's direction of motion, the odometry's across it
                     step = odometry_f2f.along_step(rel_odo, self._f2f_acc)
-                    prior_q[3:, 3:] = self.tcfg.axis_precision(step[:3, 3], self.tcfg.f2f_along_sigma,
-                                                               self.tcfg.lateral_sigma(rel_odo))
+                    s_along, s_odo = self.tcfg.f2f_along_sigma, self.tcfg.prior_sigma(rel_odo)[1]
+                    if self.tcfg.f2f_along_fade is not None and s_along < s_odo:
+                        # the odometry's own along sigma always; the rest only where the image lacks it
+                        fade_axis = step[:3, 3]
+                        prior_q[3:, 3:] = self.tcfg.axis_precision(fade_axis, s_odo, self.tcfg.lateral_sigma(rel_odo))
+                        d = fade_axis / np.linalg.norm(fade_axis)
+                        prior_fade = np.zeros((6, 6))
+                        prior_fade[3:, 3:] = self.tcfg.prior_weight * (1 / s_along ** 2 - 1 / s_odo ** 2) * np.outer(d, d)
+                    else:
+                        prior_q[3:, 3:] = self.tcfg.axis_precision(step[:3, 3], s_along, self.tcfg.lateral_sigma(rel_odo))
                 elif self.tcfg.f2f_trans_sigma is None:
                     step = odometry_f2f.prior_step(rel_odo, self._f2f_acc)
                 else:  # OpenCV's displacement too
@@ -835,7 +894,7 @@ class SLAM:
         self._f2f_reset(rgb, depth, odometry)
         self._f2f_status = f2f_status
         if prior is not None and np.all(np.isfinite(prior)):
-            pred, prior_q = np.asarray(prior, np.float32), None
+            pred, prior_q, prior_fade = np.asarray(prior, np.float32), None, None
         if odometry is not None and np.all(np.isfinite(odometry)):
             self._last_odom = np.asarray(odometry, np.float64)
         res: FrameResult
@@ -864,7 +923,8 @@ class SLAM:
             recent = self._rot_info[-self.tcfg.prior_info_window:]
             info_ref = float(np.median(recent)) if len(recent) >= 3 else None
             tr = track(self.mapper.map, rgb, depth, pose, self.K, self.mapper.W, self.mapper.H, self.tcfg,
-                       prior_precision=prior_q, info_ref=info_ref)
+                       prior_precision=prior_q, info_ref=info_ref, prior_fade=prior_fade, fade_axis=fade_axis,
+                       fade_scale=self.tcfg.f2f_along_fade or 1.0)
             t_track = tr.seconds
             if tr.status == "ok" and np.isfinite(tr.rot_info):
                 self._rot_info.append(tr.rot_info)

@@ -79,14 +79,37 @@ def analytic_jacobian(r: jax.Array, rgb: jax.Array, depth: jax.Array, K: jax.Arr
     return J @ basis.astype(J.dtype)
 
 
+def axis_information(Hd: jax.Array, v: jax.Array) -> jax.Array:
+    """The information a data metric ``Hd`` (k, k) holds on the parameter direction ``v`` (k,)
+    with every other direction free: 1 / (v^T Hd^-1 v) for a unit ``v`` (the Schur complement of
+    the rest; ``v`` is normalised here). 0 for a zero ``v``."""
+    nv = jnp.linalg.norm(v)
+    u = v / jnp.maximum(nv, 1e-12)
+    x = jnp.linalg.solve(Hd + 1e-9 * jnp.eye(Hd.shape[0], dtype=Hd.dtype), u)
+    return jnp.where(nv > 1e-6, 1.0 / jnp.maximum(u @ x, 1e-30), 0.0)
+
+
+def fade_weight(info: jax.Array, extra: jax.Array) -> jax.Array:
+    """The fraction (in [0, 1]) of an extra prior precision on one direction that is kept, given
+    the image's information ``info`` on that direction (:func:`axis_information`, the data
+    loss's curvature) and the extra prior's own curvature ``extra`` there (2 x its precision):
+    1 - info / extra, clipped. The prior fills in up to its own precision what the image does not
+    supply: all of it where the image says nothing (a plain corridor seen along its axis), none
+    where the image alone already fixes the direction that well. ``extra`` <= 0: 0."""
+    return jnp.where(extra > 0, jnp.clip(1.0 - info / jnp.maximum(extra, 1e-30), 0.0, 1.0), 0.0)
+
+
 def make_gn_stage(cfg) -> Callable:
     """The Levenberg-Marquardt stage for the tracker settings ``cfg`` (a ``TrackerConfig``).
 
-    Returns ``gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref)``
-    -> (p, loss, steps, trusted mask, last loss, rot_info, start loss), run inside the tracker's jit: p (k,)
-    the start, ``fn`` = (mask_at, loss, value_and_grad of loss, residual) of one image level
-    (rgb (H, W, 3), depth (H, W) m), ``pw`` (6, 6) the prior's precision on xi, ``info_ref`` the
-    usual rotation information (0: no information weighting); ``lr_scale`` is unused.
+    Returns ``gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref, fade)``
+    -> (p, loss, steps, trusted mask, last loss, rot_info, start loss, fwd_info, fade weight), run
+    inside the tracker's jit: p (k,) the start, ``fn`` = (mask_at, loss, value_and_grad of loss,
+    residual) of one image level (rgb (H, W, 3), depth (H, W) m), ``pw`` (6, 6) the prior's
+    precision on xi, ``info_ref`` the usual rotation information (0: no information weighting);
+    ``fade`` = (pf (6, 6), axis (6,), scale): an extra prior precision on xi kept in the fraction
+    :func:`fade_weight` of ``scale`` x the image's information on ``axis`` (an xi direction;
+    zero: no axis, fwd_info 0 and the weight 0); ``lr_scale`` is unused.
     """
     w_c = cfg.w_color
     h_fd = cfg.gn_fd_step
@@ -153,7 +176,7 @@ def make_gn_stage(cfg) -> Callable:
         M = Hrr - Hrt @ jnp.linalg.solve(Htt + 1e-12 * jnp.eye(Htt.shape[0], dtype=Htt.dtype), Hrt.T)
         return M[0, 0] if nr == 1 else jnp.linalg.eigvalsh(M)[0]
 
-    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref):
+    def gn_stage(p, n_iters, lr_scale, fn, margs, rgb, depth, vm_ref, basis, pw, info_ref, fade):
         """Levenberg-Marquardt from p on one level, same loss and trusted pixels as the Adam stage.
 
         The L1 terms are reweighted (IRLS): at residual r the quadratic model of |r| has curvature
@@ -189,6 +212,14 @@ def make_gn_stage(cfg) -> Callable:
             f = jnp.where(info_ref > 0, jnp.clip(info_ref / jnp.maximum(info, 1e-30), 1.0, info_max), 1.0)
             sq = jnp.concatenate([jnp.full(3, jnp.sqrt(f)), jnp.ones(3)]).astype(pw.dtype)
             pw = pw * sq[:, None] * sq[None, :]
+        # the image's information on the fade axis, at the start pose, in the loss's own curvature
+        # units (comparable with the prior's 2 Q), every other pose direction free
+        pf, axis, scale = fade
+        v = basis.T @ axis.astype(basis.dtype)
+        fwd_info = axis_information(Hd0, v)
+        nv = jnp.maximum(jnp.linalg.norm(v), 1e-12)
+        wf = fade_weight(scale * fwd_info, 2.0 * (v @ basis.T @ pf @ basis @ v) / nv ** 2)
+        pw = pw + wf * pf
         Pp = basis.T @ pw @ basis  # the prior on p: p^T Pp p
 
         def value(p, r):
@@ -203,7 +234,7 @@ def make_gn_stage(cfg) -> Callable:
 
         if not refresh:  # the first step's gradient is the difference quotients'
             return (*_fixed_metric(p, n_iters, (loss, vg), (margs, rgb, depth, vm_ref, basis, mf, pw), Hd0, Pp, mf, L0, g0),
-                    info, L0)
+                    info, L0, fwd_info, wf)
         H0 = Hd0 + 2.0 * Pp
 
         def cond(c):
@@ -228,6 +259,6 @@ def make_gn_stage(cfg) -> Callable:
 
         c = (jnp.int32(0), p, L0, r0, H0, g0, jnp.float32(1e-4), jnp.asarray(False))
         k, p, L, _, _, _, _, _ = jax.lax.while_loop(cond, body, c)
-        return p, L, k, mf, L, info, L0
+        return p, L, k, mf, L, info, L0, fwd_info, wf
 
     return gn_stage

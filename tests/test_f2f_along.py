@@ -38,7 +38,8 @@ def test_along_sigma_validation():
     for bad in (0.0, -1e-3, math.inf, math.nan):
         with pytest.raises(ValueError, match="f2f_along_sigma"):
             slam.TrackerConfig(f2f_along_sigma=bad).validate()
-    assert slam.TrackerConfig().f2f_along_sigma is None
+    assert slam.TrackerConfig().f2f_along_sigma == 1e-3  # the default since stop 46
+    assert slam.TrackerConfig().f2f_retry_depth_diff == 0.15
 
 
 def test_slam_hands_the_tracker_the_along_path_prior(monkeypatch, tracker_start):
