@@ -106,6 +106,11 @@ MAP_PRESETS: dict[str, dict[str, int | None]] = {
 }
 
 
+#: keyframe pose refinement's translation step (m) on simulator walks tracked with odometry
+#: (``--odometry --pose-refine``): the recipe of ``benchmarks/slam_eval.py sim`` (docs/mapping.md).
+SIM_ODOMETRY_POSE_LR_TRANS = 2e-5
+
+
 def resolve_map_preset(args: argparse.Namespace) -> argparse.Namespace:
     """Fill the ``map`` flags left unset (None) from ``MAP_PRESETS[args.preset]``; flags given
     explicitly win. Returns ``args`` (changed in place; calling it twice changes nothing)."""
@@ -134,6 +139,10 @@ def map_mapper_config(args: argparse.Namespace, real: bool) -> MapperConfig:
     # real cameras auto-expose (TUM's brightness drifts ~5 % over 10 frames): fit it unless told not to
     exposure = real if args.exposure is None else args.exposure
     mcfg.pose_refine, mcfg.pose_planar, mcfg.exposure = args.pose_refine, args.track_planar, exposure
+    if args.pose_refine and getattr(args, "odometry", False):
+        # with odometry the tracker's along-path prior holds the translation; the refinement's
+        # unconstrained 2e-4 m steps pull keyframes back toward the map (results.md, stop 46)
+        mcfg.pose_lr_trans = SIM_ODOMETRY_POSE_LR_TRANS
     return mcfg
 
 
@@ -490,7 +499,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     add_track_args(m)
     m.add_argument("--pose-refine", action="store_true",
                    help="with --track: refine the tracked keyframe poses jointly with the map during mapping "
-                        "(a local bundle adjustment through the renderer; default: off)")
+                        "(a local bundle adjustment through the renderer; default: off; with --odometry its translation "
+                        "step is 2e-5 m unless --mapper.pose_lr_trans says otherwise)")
     m.add_argument("--exposure", action=argparse.BooleanOptionalAction, default=None,
                    help="fit an affine colour (gain, bias) per frame, for cameras with auto-exposure; "
                         "summary.json adds the keyframes' PSNR with it applied (default: on for --data, "

@@ -42,3 +42,19 @@ def test_bad_values_are_refused(bad, capsys):
     with pytest.raises(SystemExit):
         _args(bad)
     assert "error" in capsys.readouterr().err
+
+
+def test_odometry_pose_refinement_takes_the_small_translation_step():
+    """With --odometry the simulator recipe's 2e-5 m refinement step is the default; a
+    --mapper.pose_lr_trans override still wins; without odometry the MapperConfig default stays."""
+    from splatsearch.cli import SIM_ODOMETRY_POSE_LR_TRANS
+    from splatsearch.cli_config import apply_overrides, config_overrides
+    from splatsearch.mapper import MapperConfig
+
+    sim = _args(["--track", "--odometry", "--pose-refine"])
+    assert map_mapper_config(sim, real=False).pose_lr_trans == SIM_ODOMETRY_POSE_LR_TRANS == 2e-5
+    plain = map_mapper_config(_args(["--track", "--pose-refine"]), real=False)
+    assert plain.pose_lr_trans == MapperConfig().pose_lr_trans
+    told = _args(["--track", "--odometry", "--pose-refine", "--mapper.pose_lr_trans", "1e-4"])
+    c = apply_overrides(map_mapper_config(told, real=False), config_overrides(told, "mapper"))
+    assert c.pose_lr_trans == 1e-4
