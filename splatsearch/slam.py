@@ -937,7 +937,10 @@ class SLAM:
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat
         t0 = time.perf_counter()
-        stats = self.mapper.update(rgb, depth, pose, refine_pose=self.track_enabled and not first, tag=i)
+        # a frame whose frame-to-frame step failed or was rejected had no along-path anchor:
+        # MapperConfig.pose_lr_trans_loose (when set) lets the map pull it further
+        stats = self.mapper.update(rgb, depth, pose, refine_pose=self.track_enabled and not first, tag=i,
+                                   loose=self._f2f_status in ("failed", "rejected"))
         self._apply_refined(stats.pop("poses", {}))
         pose = np.asarray(stats.pop("viewmat", pose), np.float32)
         return self._finish(FrameResult(i, pose, "first" if first else "mapped", tr, t_track,
