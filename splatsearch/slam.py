@@ -220,7 +220,7 @@ class TrackerConfig:
     fixes the forward motion (a corridor seen along its axis) and fades where the image pins it,
     so the heading need not absorb a mismatch the translation is held from taking. The scale
     calibrates the start pose's information (its IRLS metric, which grows as the loss falls)
-    against the prior's curvature. f2f_along_distrust (int >= 1, None: off; opt-in, stop 46): after
+    against the prior's curvature. f2f_along_distrust (int >= 1, default 2 since stop 46's rule J, None: off): after
     a run of at least ``F2F_DISTRUST_RUN`` links in a row that OpenCV failed or the gate rejected,
     the next this many accepted links give the rotation prior only, not the along-path one (where
     OpenCV fails often its accepted steps are also less reliable: on dev houses 4 and 25, 8-16 mm
@@ -273,7 +273,7 @@ class TrackerConfig:
     f2f_along_sigma: float | None = 1e-3
     f2f_retry_depth_diff: float | None = 0.15
     f2f_along_fade: float | None = None
-    f2f_along_distrust: int | None = None
+    f2f_along_distrust: int | None = 2
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):

@@ -1,5 +1,5 @@
 """TrackerConfig.f2f_along_distrust: after a run of non-accepted frame-to-frame links the next
-accepted ones are kept from the along-path prior (opt-in, off by default)."""
+accepted ones are kept from the along-path prior (default 2 since stop 46, rule J)."""
 
 import numpy as np
 import pytest
@@ -33,8 +33,8 @@ def _untrusted_after(monkeypatch, outcomes, distrust):
     return out
 
 
-def test_default_off():
-    assert TrackerConfig().f2f_along_distrust is None
+def test_default_and_validation():
+    assert TrackerConfig().f2f_along_distrust == 2  # the default since stop 46 (rule J)
     with pytest.raises(ValueError, match="f2f_along_distrust"):
         TrackerConfig(f2f_along_distrust=0).validate()
 
