@@ -164,6 +164,9 @@ def main(argv=None) -> int:
                    help="with --f2f-along-sigma: keep its precision beyond the odometry's only where this scale "
                         "times the image's information on the forward translation falls short of it "
                         f"(default {d.f2f_along_fade}: off)")
+    p.add_argument("--f2f-along-distrust", type=int, default=d.f2f_along_distrust,
+                   help="after a run of failed / rejected frame-to-frame links, keep this many accepted ones from the "
+                        f"along-path prior (default {d.f2f_along_distrust}: off)")
     p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"(default {d.f2f_retry_depth_diff}: no retry)")
@@ -202,7 +205,7 @@ def main(argv=None) -> int:
                          f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff,
                          f2f_trans_sigma=a.f2f_trans_sigma, f2f_along_sigma=a.f2f_along_sigma,
                          f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian,
-                         f2f_along_fade=a.f2f_along_fade)
+                         f2f_along_fade=a.f2f_along_fade, f2f_along_distrust=a.f2f_along_distrust)
     try:
         tcfg.validate()
     except ValueError as e:

@@ -116,7 +116,10 @@ def map_sequence(seq: RGBDSequence, job: MapJob, out: str | None = None,
                        "track_loss": _finite(r.track.loss) if r.track else None,
                        "track_rot_info": _finite(r.track.rot_info) if r.track else None,
                        "track_fwd_info": _finite(r.track.fwd_info) if r.track else None,
-                       "track_fade": _finite(r.track.fade) if r.track else None, "f2f": r.f2f}
+                       "track_fade": _finite(r.track.fade) if r.track else None, "f2f": r.f2f,
+                       # the tracker's pose before the mapper's pose refinement moved it
+                       "track_viewmat": [round(float(v), 7) for v in np.asarray(r.track.viewmat).ravel()]
+                       if r.track is not None and r.track.viewmat is not None else None}
                       for i, r in zip(done, slam.results)],
     }
     f2f = [r.f2f for r in slam.results if r.f2f is not None]

@@ -69,7 +69,9 @@ class MapperConfig:
     own Adam state): ``pose_refine`` refines the poses of frames added with ``refine_pose=True``
     (tracked frames; a local bundle adjustment through the rasterizer's viewmat gradient, step
     sizes ``pose_lr_rot`` rad / ``pose_lr_trans`` m, restricted to a ground robot's planar
-    motions with ``pose_planar``); ``exposure`` fits an affine colour (gain ``exp(g)``, bias
+    motions with ``pose_planar``; ``pose_lr_trans_loose`` m, when set, is the translation step of
+    frames added with ``loose=True`` instead: the caller's mark for a pose that no frame-to-frame
+    step anchored, which the map may then pull further); ``exposure`` fits an affine colour (gain ``exp(g)``, bias
     ``b``) per frame, applied to the render in the loss (step size ``exposure_lr``): auto-exposure
     of real cameras then no longer bends the map's colours. The first frame's exposure is fixed
     (it sets the colour scale).
@@ -109,6 +111,7 @@ class MapperConfig:
     pose_refine: bool = False
     pose_lr_rot: float = 2e-4
     pose_lr_trans: float = 2e-4
+    pose_lr_trans_loose: float | None = None
     pose_planar: bool = False
     exposure: bool = False
     exposure_lr: float = 2e-3
@@ -125,6 +128,8 @@ class MapperConfig:
             raise ValueError("pixel_scale > 0, 0 <= min_depth < max_depth and depth_edge_rel >= 0 are required")
         if not (self.pose_lr_rot > 0 and self.pose_lr_trans > 0 and self.exposure_lr > 0):
             raise ValueError("pose_lr_rot, pose_lr_trans and exposure_lr must be > 0")
+        if self.pose_lr_trans_loose is not None and not self.pose_lr_trans_loose > 0:
+            raise ValueError(f"pose_lr_trans_loose must be None or > 0, got {self.pose_lr_trans_loose}")
         if not 0 < self.refine_lr_final <= 1:
             raise ValueError(f"refine_lr_final must be in (0, 1], got {self.refine_lr_final}")
         if self.iters < 0 or self.window < 1 or self.keyframe_every < 1 or self.stride < 1:
@@ -150,6 +155,7 @@ class Frame:
     refine_pose: bool = False
     tag: int | None = None
     fix_exposure: bool = False
+    loose: bool = False
     fp: np.ndarray = field(default_factory=lambda: np.zeros(8, np.float32))
 
     @property
@@ -186,6 +192,9 @@ class Mapper:
         self.tx, self._step, self._step_fp = _optimiser_and_step(self.cfg, self.K, self.W, self.H)
         c = self.cfg
         self._fp_lrs = np.array([c.pose_lr_rot] * 3 + [c.pose_lr_trans] * 3 + [c.exposure_lr] * 2, np.float32)
+        self._fp_lrs_loose = self._fp_lrs.copy()
+        if c.pose_lr_trans_loose is not None:
+            self._fp_lrs_loose[3:6] = c.pose_lr_trans_loose
         self.opt_state = self.tx.init(self.map.params())
         self.keyframes: list[Frame] = []
         self.n_frames = 0
@@ -207,13 +216,15 @@ class Mapper:
         img, dep, alp = render_map(self.map, viewmat, self.K, self.W, self.H)
         return np.asarray(img), np.asarray(dep)[..., 0], np.asarray(alp)[..., 0]
 
-    def update(self, rgb, depth, viewmat, *, refine_pose: bool = False, tag: int | None = None) -> dict:
+    def update(self, rgb, depth, viewmat, *, refine_pose: bool = False, tag: int | None = None,
+               loose: bool = False) -> dict:
         """Add one posed RGB-D frame: densify, optimise over the keyframe window, prune.
 
         rgb (H, W, 3) float in [0, 1]; depth (H, W) metres, 0 = invalid; viewmat (4, 4)
         world-to-camera. refine_pose: the pose is an estimate (tracking) that
         ``MapperConfig.pose_refine`` may refine, now and while the frame is a keyframe; tag: the
-        caller's id of the frame. Returns stats: added, pruned, n_gaussians, loss, viewmat (the
+        caller's id of the frame; loose: its translation is refined with ``pose_lr_trans_loose``
+        (when set) instead of ``pose_lr_trans``. Returns stats: added, pruned, n_gaussians, loss, viewmat (the
         frame's pose after this update), poses ({tag: viewmat} of the window's tagged frames).
         """
         rgb = np.asarray(rgb, np.float32)
@@ -229,7 +240,7 @@ class Mapper:
         if cfg.min_depth > 0 or np.isfinite(cfg.max_depth) or cfg.depth_edge_rel > 0:
             depth = clean_depth(depth, cfg.min_depth, cfg.max_depth, cfg.depth_edge_rel)
         frame = Frame(rgb, depth, viewmat, refine_pose=bool(refine_pose), tag=tag,
-                      fix_exposure=self.n_frames == 0)
+                      fix_exposure=self.n_frames == 0, loose=bool(loose))
         # 1. densify where the map is missing (eq 10)
         if self.map.n_active:
             _, dhat, alpha = self.render(viewmat)
@@ -311,7 +322,7 @@ class Mapper:
                 continue
             params, opt_state, loss, g = self._step_fp(params, active, opt_state, jnp.asarray(f.fp), r, s, d,
                                                        jnp.asarray(f.viewmat), jnp.float32(sc))
-            _fp_adam(f, np.asarray(g) * mask, self._fp_lrs * sc)
+            _fp_adam(f, np.asarray(g) * mask, (self._fp_lrs_loose if f.loose else self._fp_lrs) * sc)
         for f in frames:  # fold the pose increments into the poses (the Adam moments stay)
             if np.any(f.fp[:6]):
                 f.viewmat = np.asarray(_pose_apply(jnp.asarray(f.viewmat), jnp.asarray(f.fp[:6])), np.float32)

@@ -119,6 +119,8 @@ SOLVERS = ("adam", "gn")
 #: Levenberg-Marquardt's Jacobian: from the one render at the pose (image gradients, pinhole, se(3))
 #: or from k forward-difference renders
 JACOBIANS = ("analytic", "finite-difference")
+# f2f_along_distrust: links in a row not accepted before the next accepted ones are distrusted
+F2F_DISTRUST_RUN = 3
 
 
 @dataclass
@@ -218,7 +220,11 @@ class TrackerConfig:
     fixes the forward motion (a corridor seen along its axis) and fades where the image pins it,
     so the heading need not absorb a mismatch the translation is held from taking. The scale
     calibrates the start pose's information (its IRLS metric, which grows as the loss falls)
-    against the prior's curvature.
+    against the prior's curvature. f2f_along_distrust (int >= 1, default 2 since stop 46's rule J, None: off): after
+    a run of at least ``F2F_DISTRUST_RUN`` links in a row that OpenCV failed or the gate rejected,
+    the next this many accepted links give the rotation prior only, not the along-path one (where
+    OpenCV fails often its accepted steps are also less reliable: on dev houses 4 and 25, 8-16 mm
+    errors that pass the gate, three of four right after such a run).
     """
 
     iters: int = 40
@@ -267,6 +273,7 @@ class TrackerConfig:
     f2f_along_sigma: float | None = 1e-3
     f2f_retry_depth_diff: float | None = 0.15
     f2f_along_fade: float | None = None
+    f2f_along_distrust: int | None = 2
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -280,6 +287,8 @@ class TrackerConfig:
             raise ValueError(f"f2f_retry_depth_diff must be None or a finite value > 0, got {self.f2f_retry_depth_diff}")
         if self.f2f_along_fade is not None and not (self.f2f_along_fade > 0 and math.isfinite(self.f2f_along_fade)):
             raise ValueError(f"f2f_along_fade must be None or a finite value > 0, got {self.f2f_along_fade}")
+        if self.f2f_along_distrust is not None and not self.f2f_along_distrust >= 1:
+            raise ValueError(f"f2f_along_distrust must be None or >= 1, got {self.f2f_along_distrust}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -814,6 +823,9 @@ class SLAM:
         self._f2f_acc: np.ndarray | None = np.eye(4)
         self._f2f_link: str | None = None  # the worst link status since the last processed frame
         self._f2f_status: str | None = None  # this frame's, for its FrameResult
+        self._f2f_bad_run = 0  # links in a row not accepted (f2f_along_distrust)
+        self._f2f_distrust_left = 0  # accepted links still to be kept from the along prior
+        self._f2f_untrusted = False  # a link of the current chain was
 
     @property
     def K(self):
@@ -870,7 +882,7 @@ class SLAM:
                 prior_q = prior_q.copy()
                 prior_q[:3, :3] = np.eye(3) * (self.tcfg.prior_weight / self.tcfg.f2f_rot_sigma ** 2)
                 if self.tcfg.f2f_trans_sigma is None and self.tcfg.f2f_along_sigma is not None \
-                        and np.linalg.norm(rel_odo[:3, 3]) > 1e-3:
+                        and not self._f2f_untrusted and np.linalg.norm(rel_odo[:3, 3]) > 1e-3:
                     # OpenCV's distance along the odometry's direction of motion, the odometry's across it
                     step = odometry_f2f.along_step(rel_odo, self._f2f_acc)
                     s_along, s_odo = self.tcfg.f2f_along_sigma, self.tcfg.prior_sigma(rel_odo)[1]
@@ -937,7 +949,10 @@ class SLAM:
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat
         t0 = time.perf_counter()
-        stats = self.mapper.update(rgb, depth, pose, refine_pose=self.track_enabled and not first, tag=i)
+        # a frame whose frame-to-frame step failed or was rejected had no along-path anchor:
+        # MapperConfig.pose_lr_trans_loose (when set) lets the map pull it further
+        stats = self.mapper.update(rgb, depth, pose, refine_pose=self.track_enabled and not first, tag=i,
+                                   loose=self._f2f_status in ("failed", "rejected"))
         self._apply_refined(stats.pop("poses", {}))
         pose = np.asarray(stats.pop("viewmat", pose), np.float32)
         return self._finish(FrameResult(i, pose, "first" if first else "mapped", tr, t_track,
@@ -1000,6 +1015,15 @@ class SLAM:
                                                     else "rejected")
             if status == "accepted":
                 break
+        if status == "accepted":
+            if self.tcfg.f2f_along_distrust and self._f2f_bad_run >= F2F_DISTRUST_RUN:
+                self._f2f_distrust_left = self.tcfg.f2f_along_distrust
+            if self._f2f_distrust_left > 0:
+                self._f2f_distrust_left -= 1
+                self._f2f_untrusted = True
+            self._f2f_bad_run = 0
+        else:
+            self._f2f_bad_run += 1
         if status != "accepted" or self._f2f_acc is None:
             self._f2f_acc = None
         else:
@@ -1015,6 +1039,7 @@ class SLAM:
         self._f2f_ref = (rgb, depth) if ok and self.tcfg.f2f_prior else None
         self._f2f_ref_odom = np.asarray(odometry, np.float64) if ok else None
         self._f2f_acc, self._f2f_link = np.eye(4), None
+        self._f2f_untrusted = False
 
     def _finish(self, res: FrameResult) -> FrameResult:
         res.f2f, self._f2f_status = self._f2f_status, None
