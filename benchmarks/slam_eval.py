@@ -103,6 +103,24 @@ def _opt_float(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"a number or 'off', got {text!r}") from None
 
 
+def _opt_count(text: str) -> int | None:
+    """An integer >= 1, or "off" / "none" (None: the setting is off)."""
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"an integer >= 1 or 'off', got {text!r}")
+    return n
+
+
+def _default(value) -> str:
+    """A help text's default: the value, or 'off' for None."""
+    return "off" if value is None else f"{value:g}"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("what", choices=["tum", "sim", "speed"])
@@ -156,20 +174,20 @@ def main(argv=None) -> int:
                         f"(default {d.f2f_max_depth_diff:g})")
     p.add_argument("--f2f-trans-sigma", type=_opt_float, default=d.f2f_trans_sigma,
                    help="also take an accepted frame-to-frame step's displacement, with this sigma in m "
-                        f"(default {d.f2f_trans_sigma}: rotation only)")
+                        f"or 'off' (default {_default(d.f2f_trans_sigma)}; off: rotation only)")
     p.add_argument("--f2f-along-sigma", type=_opt_float, default=d.f2f_along_sigma,
                    help="take only an accepted frame-to-frame step's displacement along the odometry's direction "
-                        f"of motion, with this sigma in m (default {d.f2f_along_sigma}: off)")
+                        f"of motion, with this sigma in m, or 'off' (default {_default(d.f2f_along_sigma)})")
     p.add_argument("--f2f-along-fade", type=_opt_float, default=d.f2f_along_fade,
                    help="with --f2f-along-sigma: keep its precision beyond the odometry's only where this scale "
-                        "times the image's information on the forward translation falls short of it "
-                        f"(default {d.f2f_along_fade}: off)")
-    p.add_argument("--f2f-along-distrust", type=int, default=d.f2f_along_distrust,
+                        "times the image's information on the forward translation falls short of it, or 'off' "
+                        f"(default {_default(d.f2f_along_fade)})")
+    p.add_argument("--f2f-along-distrust", type=_opt_count, default=d.f2f_along_distrust,
                    help="after a run of failed / rejected frame-to-frame links, keep this many accepted ones from the "
-                        f"along-path prior (default {d.f2f_along_distrust}: off)")
+                        f"along-path prior, or 'off' (default {_default(d.f2f_along_distrust)})")
     p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
-                        f"(default {d.f2f_retry_depth_diff}: no retry)")
+                        f"or 'off' (default {_default(d.f2f_retry_depth_diff)})")
     p.add_argument("--odometry-seed", type=int, default=None,
                    help="seed of the simulator walk's odometry noise (default: the house seed, so each house "
                         "has its own noise sequence)")
