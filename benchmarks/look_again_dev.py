@@ -53,6 +53,7 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: boo
             ambiguous[0] += 1
 
     t0 = time.perf_counter()
+    c0 = time.process_time()  # this process's CPU seconds (all threads): steadier than wall on a shared machine
     load0 = os.getloadavg()[0]
     r = run_episode(ep, cfg, env=env, max_steps=max_steps, on_step=on_step)
     agent = holder["agent"]
@@ -71,6 +72,7 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: boo
                 "ambiguous_steps": ambiguous[0],
                 "look_again_steps": statuses.count("look_again"), "load1_start": round(load0, 2),
                 "load1_end": round(os.getloadavg()[0], 2), "wall_s": round(time.perf_counter() - t0, 1),
+                "cpu_s": round(time.process_time() - c0, 1),
                 "overrides": overrides})
     return out
 
@@ -269,7 +271,7 @@ def main(argv=None) -> int:
         if other and not os.path.exists(other) and args.look_again == 0 and r["ambiguous_steps"] == 0:
             o = dict(r, look_again=1, deduced_from=args.out)  # the look-again run would be the same
             atomic_write_bytes(other, json.dumps(o, indent=1).encode())
-        print(json.dumps({k: r[k] for k in ("house_seed", "episode_id", "success", "spl", "steps", "wall_s",
+        print(json.dumps({k: r[k] for k in ("house_seed", "episode_id", "success", "spl", "steps", "wall_s", "cpu_s",
                                              "look_again_steps", "load1_start")}), flush=True)
     return 0
 
