@@ -12,8 +12,9 @@ and compiling (``jax.monitoring``), which overlaps the phase that triggered it. 
 episode's wall time minus every timed phase (the agent's own bookkeeping, lifting by depth, the
 observation store, ...). The timers add a few microseconds per call and change no decision.
 
-Dev houses only (seeds below 1000); one process runs its episodes in turn, so compiles are paid
-in the first one, as in ``splatsearch eval --workers 1``.
+Dev houses only (seeds below 1000); one process runs its episodes in turn after the warm-up that
+``splatsearch eval --workers 1`` does (threads, the persistent JAX compile cache, Warp kernels), so
+compiles are paid in the first one or loaded from the cache, as there.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ import os
 import sys
 import time
 from collections import defaultdict
+
+import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -150,6 +153,37 @@ def summary(dirs: list[str]) -> int:
     return 0
 
 
+def compare(a_dir: str, b_dir: str) -> int:
+    """Whether the episodes two runs share decided the same: success, steps, path length, NVSM runs,
+    every entry's e_max and the look-again / confirm trips must be equal (e_max to 1e-6); prints
+    the CPU and wall seconds of each episode and the median speed-up. Returns 1 if any differ."""
+    a = {os.path.basename(p): json.load(open(p)) for p in glob.glob(os.path.join(a_dir, "ep_*.json"))}
+    b = {os.path.basename(p): json.load(open(p)) for p in glob.glob(os.path.join(b_dir, "ep_*.json"))}
+    common = sorted(set(a) & set(b))
+    bad, ratios_c, ratios_w = 0, [], []
+    for k in common:
+        x, y = a[k], b[k]
+        same = (x["success"] == y["success"] and x["steps"] == y["steps"]
+                and abs(x["path_length"] - y["path_length"]) < 1e-9 and x["nvsm_runs"] == y["nvsm_runs"]
+                and len(x["entries"]) == len(y["entries"])
+                and all(abs(p["e_max"] - q["e_max"]) < 1e-6 for p, q in zip(x["entries"], y["entries"]))
+                and [(t["kind"], t["outcome"], t["start"], t["end"]) for t in x["look_log"]]
+                == [(t["kind"], t["outcome"], t["start"], t["end"]) for t in y["look_log"]])
+        bad += not same
+        cx, cy = x.get("cpu_s"), y.get("cpu_s")
+        if cx and cy:
+            ratios_c.append(cx / cy)
+        ratios_w.append(x["wall_s"] / y["wall_s"])
+        print(f"{k}: {'same' if same else 'DIFFERENT'}: {'S' if x['success'] else 'F'} {x['steps']} steps "
+              f"{x['path_length']:.2f} m vs {'S' if y['success'] else 'F'} {y['steps']} steps {y['path_length']:.2f} m; "
+              f"cpu {cx} -> {cy} s, wall {x['wall_s']} -> {y['wall_s']} s (load {x['load1_start']} / {y['load1_start']})")
+    if common:
+        print(f"{len(common)} episodes, {bad} different; median speed-up CPU {np.median(ratios_c) if ratios_c else float('nan'):.3f}x, "
+              f"wall {np.median(ratios_w):.3f}x; total CPU {sum(a[k].get('cpu_s', 0) for k in common):.1f} -> "
+              f"{sum(b[k].get('cpu_s', 0) for k in common):.1f} s")
+    return int(bad > 0)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--episodes", type=int, default=16, help="dev episodes with a look-alike (default 16)")
@@ -159,15 +193,22 @@ def main(argv=None) -> int:
     ap.add_argument("--look-again", type=int, default=1, help="AgentConfig.look_again (default 1, today's default)")
     ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE", help="extra AgentConfig field")
     ap.add_argument("--out", default=None, help="output folder (one JSON per episode)")
+    ap.add_argument("--compare", nargs=2, default=None, metavar=("BEFORE", "AFTER"),
+                    help="check that two runs' shared episodes decided the same, print the speed-up and exit")
     ap.add_argument("--summary", nargs="+", default=None, metavar="DIR", help="print finished runs' tables and exit")
     args = ap.parse_args(argv)
     if args.summary:
         return summary(args.summary)
+    if args.compare:
+        return compare(*args.compare)
     if args.out is None:
         ap.error("--out is needed to run")
-    import warp as wp
+    from splatsearch.kernels.parallel import cpu_threads
+    from splatsearch.parallel import warm_worker
 
-    wp.config.quiet = True
+    # the warm-up `splatsearch eval --workers 1` does: threads, the persistent JAX compile cache,
+    # Warp's kernels loaded
+    warm_worker(cpu_threads(), ("splatsearch.episode",))
     from look_again_dev import run
     from nvsm_views import dev_episodes, has_lookalike
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from splatsearch.search.local_map import LocalMapConfig
 from splatsearch.search.matching import DEFAULT_TAU_M, RENDER_TAU_M
 
@@ -109,7 +111,11 @@ class AgentConfig:
     ambiguous objects get their look-again trips first, since one may be the goal and overtake it,
     and with none left the match stands). ``look_again_after_refute`` lets look-again trips begin
     only once a confirm trip has refuted a match in the episode (a look-alike is about, so the
-    ambiguous objects are worth a trip).
+    ambiguous objects are worth a trip). ``refute_radius`` (m, 0 = off, the default): a refusal also covers every
+    same-class entry whose centroid lies within this distance of the refuted one's, a duplicate DB
+    entry of the same physical object, for as long as neither has reached confirm_below (centroids
+    drift as views accumulate, so two entries made more than ``tau_d`` apart can end up on one
+    object; issue 23, stop 47).
 
     Planning: ``alpha``, ``beta``, ``delta``: eq 19 weights. ``stop_margin`` (m): stop this close
     to a goal object's extent. ``goal_patience``: reachable steps without getting 0.1 m closer
@@ -160,6 +166,7 @@ class AgentConfig:
     look_again_after_refute: bool = True
     confirm_below: float = 18.0
     confirm_by: str = "new_frame"
+    refute_radius: float = 0.0
     colour_cue: bool = True
     tau_a: float = 0.45
     colour_min_views: int = 2
@@ -185,6 +192,8 @@ class AgentConfig:
                              "look_again_max_path > 0 and look_again_low >= 0")
         if self.confirm_by not in ("new_frame", "rivals"):
             raise ValueError(f"confirm_by must be 'new_frame' or 'rivals', got {self.confirm_by!r}")
+        if not (np.isfinite(self.refute_radius) and self.refute_radius >= 0):
+            raise ValueError(f"refute_radius must be a distance >= 0 m (0: off), got {self.refute_radius}")
         if not self.confirm_below >= 0:
             raise ValueError(f"confirm_below must be >= 0 (at or below tau_m: off), got {self.confirm_below}")
         if not (0 <= self.colour_veto <= self.tau_a <= 1) or self.colour_min_views < 1 \

@@ -119,8 +119,33 @@ class SearchPolicy:
         return sorted(out, key=lambda e: (-e.colour_similarity, -e.e_max))
 
     def is_refuted(self, e: ObjectEntry) -> bool:
-        """A confirm trip refuted ``e``'s match and its e_max has not since reached ``confirm_below``."""
-        return e.id in self.refuted and e.e_max < self.cfg.confirm_below
+        """A confirm trip refuted ``e``'s match (or, with ``refute_radius``, a duplicate's: see
+        :meth:`refuted_by`) and its e_max has not since reached ``confirm_below``."""
+        return self.refuted_by(e) is not None
+
+    def refuted_by(self, e: ObjectEntry) -> int | None:
+        """The id of the refuted entry whose refusal covers ``e``, or None: ``e`` itself when a
+        confirm trip refuted it, else (with ``refute_radius`` > 0) the nearest refuted entry of the
+        same class whose centroid lies within ``refute_radius`` m of ``e``'s: a duplicate entry of
+        the same object must not pass where the refuted one could not. Only while both e_max stay
+        below ``confirm_below`` (the level that lifts a refusal)."""
+        cb = self.cfg.confirm_below
+        if e.e_max >= cb:
+            return None
+        if e.id in self.refuted:
+            return e.id
+        r = self.cfg.refute_radius
+        if r <= 0 or not self.refuted:
+            return None
+        best, best_d = None, np.inf
+        for rid in self.refuted:
+            o = self.db[rid]
+            if o.label != e.label or o.e_max >= cb:
+                continue
+            d = float(np.linalg.norm(o.centroid - e.centroid))
+            if d <= r and d < best_d:
+                best, best_d = rid, d
+        return best
 
     def needs_confirm(self, e: ObjectEntry) -> bool:
         """``e`` is taken for the goal by a marginal feature match (e_max in [tau_m,
@@ -407,8 +432,9 @@ class SearchPolicy:
         frame that refuted it."""
         cents, scores = self.db.scores()
         for e in self.db:
-            if self.is_refuted(e):
-                scores[e.id] = min(scores[e.id], self.refuted[e.id])
+            rid = self.refuted_by(e)
+            if rid is not None:
+                scores[e.id] = min(scores[e.id], self.refuted[rid])
         if self.verifier.colour_cue:
             sim = np.array([max(e.colour_similarity, 0.0) for e in self.db])
             if len(sim):
