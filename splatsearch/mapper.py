@@ -350,17 +350,31 @@ class Mapper:
         vis = np.zeros(n, bool)
         m = self.cfg.submap_margin
         K = self.K
-        for vm in viewmats:
+        cap = self.map.capacity
+        for k, vm in enumerate(viewmats):
             vm = np.asarray(vm, np.float32)
+            # the projection of all rows, as always (a BLAS product of a subset can round
+            # differently); the tests below only for the rows no earlier view saw
             pc = means @ vm[:3, :3].T + vm[:3, 3]
+            idx = None if k == 0 else np.flatnonzero(~vis)
+            if idx is not None:
+                if len(idx) == 0:
+                    break
+                pc = pc[idx]
             z = pc[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = K[0, 0] * pc[:, 0] / z + K[0, 2]
                 v = K[1, 1] * pc[:, 1] / z + K[1, 2]
-            vis |= (z > 0.01) & (u > -m * self.W) & (u < (1 + m) * self.W) & (v > -m * self.H) & (v < (1 + m) * self.H)
+            hit = (z > 0.01) & (u > -m * self.W) & (u < (1 + m) * self.W) & (v > -m * self.H) & (v < (1 + m) * self.H)
+            if idx is None:
+                vis |= hit
+            else:
+                vis[idx[hit]] = True
+            if _bucket(int(np.count_nonzero(vis))) >= cap:
+                return None  # more views only add rows: the answer is already "the whole map"
         rows = np.nonzero(vis)[0]
         # a submap nearly as big as the map saves nothing and costs the gather and scatter
-        if len(rows) == 0 or _bucket(len(rows)) >= self.map.capacity:
+        if len(rows) == 0 or _bucket(len(rows)) >= cap:
             return None
         return rows
 
