@@ -197,6 +197,51 @@ def test_submap_optimises_like_the_whole_map():
     assert abs(res[True]["depth_l1"] - res[False]["depth_l1"]) < 0.01
 
 
+def _visible_rows_reference(m, viewmats):
+    """The submap's rows as stop 46's code found them: every view tested on every row."""
+    n = m.map.n_active
+    means = np.asarray(m.map.means)[:n]
+    vis = np.zeros(n, bool)
+    mg, K = m.cfg.submap_margin, m.K
+    for vm in viewmats:
+        vm = np.asarray(vm, np.float32)
+        pc = means @ vm[:3, :3].T + vm[:3, 3]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * pc[:, 0] / z + K[0, 2]
+            v = K[1, 1] * pc[:, 1] / z + K[1, 2]
+        vis |= (z > 0.01) & (u > -mg * m.W) & (u < (1 + mg) * m.W) & (v > -mg * m.H) & (v < (1 + mg) * m.H)
+    rows = np.nonzero(vis)[0]
+    return None if len(rows) == 0 or max(1024, 1 << int(np.ceil(np.log2(len(rows))))) >= m.map.capacity else rows
+
+
+def test_visible_rows_equal_the_all_rows_test():
+    """Testing only the rows no earlier view saw, and stopping once the whole map is the answer,
+    finds exactly what testing every row in every view finds (issue 23, stop 47)."""
+    rng = np.random.default_rng(3)
+    K = np.array([[100.0, 0, 64], [0, 100.0, 48], [0, 0, 1]], np.float32)
+    m = Mapper(K, 128, 96, MapperConfig(initial_capacity=4096))
+    seen = set()
+    for n_pts, spread in ((3000, 0.3), (3000, 20.0), (5000, 60.0)):
+        new = densify(np.full((96, 128), 2.0, np.float32), np.zeros((96, 128), np.float32),
+                      np.zeros((96, 128), np.float32), rng.random((96, 128, 3)).astype(np.float32),
+                      np.eye(4, dtype=np.float32), K, stride=1)
+        new.pop("mask")
+        k = min(n_pts, len(new["means"]))
+        new = {key: v[:k] for key, v in new.items()}
+        new["means"] = (rng.normal(size=(k, 3)) * spread + [0.0, 0.0, 3.0]).astype(np.float32)
+        m.map, m.opt_state, _ = append(m.map, m.opt_state, new)
+        for _ in range(5):
+            views = [perturb_viewmat(np.eye(4, dtype=np.float32), rng.normal(size=6).astype(np.float32) * 0.3)
+                     for _ in range(int(rng.integers(1, 6)))]
+            got, ref = m._visible_rows(views), _visible_rows_reference(m, views)
+            assert (got is None) == (ref is None)
+            if ref is not None:
+                np.testing.assert_array_equal(got, ref)
+            seen.add(ref is None)
+    assert seen == {True, False}  # both answers came up: the whole map, and a submap
+
+
 def _map_with_content():
     frames, K, W, H = _small_frames(1)
     m = Mapper(K, W, H, MapperConfig(iters=3, stride=2, initial_capacity=256))
