@@ -198,6 +198,10 @@ def main(argv=None) -> int:
                          "tau_m is the same under confirm_below with look_again 0 or look_again_after_refute "
                          "(no confirm trip, so no refutation and no look-again trip), so its result is copied "
                          "(marked deduced_from) instead of run")
+    ap.add_argument("--copy-unrefuted", default=None, metavar="DIR",
+                    help="a run with refute_radius 0: an episode in which it refuted no match is the same with "
+                         "any refute_radius (a refusal that never happened covers no duplicate), so its result is "
+                         "copied (marked deduced_from) instead of run")
     ap.add_argument("--colour", action="store_true",
                     help="default houses (no look-alike furniture) with the colour cue on, as `splatsearch eval` "
                          "without --identical-furniture: a check that the look-again/confirm settings keep that SR")
@@ -253,6 +257,14 @@ def main(argv=None) -> int:
                           "confirmed": [], "overrides": overrides, "deduced_from": args.copy_unmatched})
                 atomic_write_bytes(path, json.dumps(o, indent=1).encode())
                 print(json.dumps({"deduced": name, "from": args.copy_unmatched}), flush=True)
+                continue
+        if args.copy_unrefuted:
+            src = os.path.join(args.copy_unrefuted, name)
+            o = json.load(open(src)) if os.path.exists(src) else None
+            if o is not None and not o["overrides"].get("refute_radius") and not o["refuted"]:
+                o.update({"overrides": overrides, "deduced_from": args.copy_unrefuted})
+                atomic_write_bytes(path, json.dumps(o, indent=1).encode())
+                print(json.dumps({"deduced": name, "from": args.copy_unrefuted}), flush=True)
                 continue
         other = os.path.join(args.pair, name) if args.pair else None
         if other and os.path.exists(other):
