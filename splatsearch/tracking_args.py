@@ -107,6 +107,9 @@ TRACKER_FIELD_HELP = {
                       "(scale; none: off)",
     "f2f_along_distrust": "after 3+ links in a row not accepted, this many accepted links give the "
                           "rotation only (none: off)",
+    "f2f_fallback_window": "links in the window of f2f_fallback_fail (none: off)",
+    "f2f_fallback_fail": "while more than this share of the last f2f_fallback_window links failed, accepted "
+                         "links give the rotation only",
 }
 
 
