@@ -185,6 +185,11 @@ def main(argv=None) -> int:
     p.add_argument("--f2f-along-distrust", type=_opt_count, default=d.f2f_along_distrust,
                    help="after a run of failed / rejected frame-to-frame links, keep this many accepted ones from the "
                         f"along-path prior, or 'off' (default {_default(d.f2f_along_distrust)})")
+    p.add_argument("--f2f-fallback-window", type=_opt_count, default=d.f2f_fallback_window,
+                   help="while more than --f2f-fallback-fail of the last this many frame-to-frame links failed, "
+                        f"accepted links give the rotation only, or 'off' (default {_default(d.f2f_fallback_window)})")
+    p.add_argument("--f2f-fallback-fail", type=float, default=d.f2f_fallback_fail,
+                   help=f"the failed share of --f2f-fallback-window (default {_default(d.f2f_fallback_fail)})")
     p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"or 'off' (default {_default(d.f2f_retry_depth_diff)})")
@@ -223,7 +228,8 @@ def main(argv=None) -> int:
                          f2f_rot_sigma=a.f2f_rot_sigma, f2f_max_depth_diff=a.f2f_max_depth_diff,
                          f2f_trans_sigma=a.f2f_trans_sigma, f2f_along_sigma=a.f2f_along_sigma,
                          f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian,
-                         f2f_along_fade=a.f2f_along_fade, f2f_along_distrust=a.f2f_along_distrust)
+                         f2f_along_fade=a.f2f_along_fade, f2f_along_distrust=a.f2f_along_distrust,
+                         f2f_fallback_window=a.f2f_fallback_window, f2f_fallback_fail=a.f2f_fallback_fail)
     try:
         tcfg.validate()
     except ValueError as e:

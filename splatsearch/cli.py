@@ -158,8 +158,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
     from splatsearch import datasets
     from splatsearch.map_job import MapJob, map_sequence
-    from splatsearch.tracking_args import flags_needing_track, tracker_config
+    from splatsearch.tracking_args import map_tracker_config
 
+    # tracking options without --track are refused before any frame is loaded
+    tcfg = map_tracker_config(args)
     console = Console()
     data = args.data or args.tum
     fmt = "tum" if (args.tum and not args.data and args.format == "auto") else args.format
@@ -184,10 +186,6 @@ def _cmd_map(args: argparse.Namespace) -> int:
     from splatsearch.cli_config import apply_overrides, config_overrides
 
     mcfg = apply_overrides(mcfg, config_overrides(args, "mapper"))  # --mapper.FIELD wins over the flags above
-    tcfg = tracker_config(args)
-    needs_track = flags_needing_track(args)
-    if needs_track and not args.track:
-        raise ValueError(f"{', '.join(needs_track)}: only with --track (these options act on tracked poses)")
     job = MapJob(mcfg, tcfg, track=args.track, use_odometry=args.odometry, holdout_every=args.holdout_every,
                  refine=args.refine, gt_prior=args.track_from_gt)
     for note in seq.notes:
@@ -376,13 +374,25 @@ def _use_formatter(parser: argparse.ArgumentParser) -> None:
                 _use_formatter(sp)
 
 
-#: sub-commands that take every field of a config dataclass as ``--PREFIX.FIELD`` (see
-#: :mod:`splatsearch.cli_config`): (prefix, "module:Class", fields left to the command's own flags)
-CONFIG_FLAGS = {
-    "map": ("mapper", "splatsearch.mapper:MapperConfig", ()),
-    "demo": ("agent", "splatsearch.agent.config:AgentConfig", ("variant",)),
-    "eval": ("agent", "splatsearch.agent.config:AgentConfig", ("variant",)),
+#: sub-commands that take every field of config dataclasses as ``--PREFIX.FIELD`` (see
+#: :mod:`splatsearch.cli_config`): a list per command of (prefix, "module:Class", fields left to
+#: the command's own flags, "module:DICT" of per-field help or None: the class docstring's).
+#: ``TrackerConfig.planar`` stays with ``--track-planar``, which also sets the mapper's planar
+#: pose refinement.
+CONFIG_FLAGS: dict[str, list[tuple[str, str, tuple[str, ...], str | None]]] = {
+    "map": [("mapper", "splatsearch.mapper:MapperConfig", (), None),
+            ("tracker", "splatsearch.slam:TrackerConfig", ("planar",), "splatsearch.tracking_args:TRACKER_FIELD_HELP")],
+    "demo": [("agent", "splatsearch.agent.config:AgentConfig", ("variant",), None)],
+    "eval": [("agent", "splatsearch.agent.config:AgentConfig", ("variant",), None)],
 }
+
+
+def _load(path: str):
+    """The object named by ``"module:NAME"``."""
+    import importlib
+
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def _add_plugin_flags(parser: argparse.ArgumentParser) -> None:
@@ -417,8 +427,8 @@ def _command_of(argv: list[str]) -> str | None:
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The ``splatsearch`` parser. Building it imports neither JAX nor Warp: every command's heavy
     modules are imported inside its handler. When ``argv`` names ``map``, ``demo`` or ``eval``,
-    that command also gets a flag per config field (:data:`CONFIG_FLAGS`), which loads its
-    config class (and so JAX)."""
+    that command also gets a flag per config field (:data:`CONFIG_FLAGS`; ``map``: ``--mapper.FIELD``
+    and ``--tracker.FIELD``), which loads its config classes (and so JAX)."""
     p = argparse.ArgumentParser(prog="splatsearch", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     from splatsearch._version import __version__
@@ -588,14 +598,11 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     register_social(sub, extra=[register_olivia])
     command = _command_of(list(argv or []))
     if command in CONFIG_FLAGS:
-        import importlib
-
         from splatsearch.cli_config import add_config_flags
 
-        prefix, path, skip = CONFIG_FLAGS[command]
-        module, _, name = path.partition(":")
-        cls = getattr(importlib.import_module(module), name)
-        add_config_flags(sub.choices[command], cls, prefix, skip=skip)
+        for prefix, path, skip, helps in CONFIG_FLAGS[command]:
+            add_config_flags(sub.choices[command], _load(path), prefix, skip=skip,
+                             helps=_load(helps) if helps else None)
     _use_formatter(p)
     return p
 

@@ -1,6 +1,6 @@
 """Every field of a config dataclass as a command-line flag: ``--PREFIX.FIELD VALUE``.
 
-:func:`add_config_flags` adds one flag per field of :class:`~splatsearch.mapper.MapperConfig`,
+:func:`add_config_flags` adds one flag per field of :class:`~splatsearch.mapper.MapperConfig`, :class:`~splatsearch.slam.TrackerConfig`,
 :class:`~splatsearch.agent.AgentConfig` (and nested ones, e.g. ``--agent.local_map.stride``), with
 the field's type, its default and the sentence of the class docstring that documents it as help.
 Only the flags a user gives are applied (:func:`config_overrides`), so the dataclass defaults stay
@@ -85,16 +85,18 @@ def _resolve(type_text: Any, cls: type) -> tuple[str, bool]:
 
 
 def add_config_flags(parser: argparse.ArgumentParser, cls: type, prefix: str, *, skip: tuple[str, ...] = (),
-                     title: str | None = None) -> list[str]:
+                     title: str | None = None, helps: dict[str, str] | None = None) -> list[str]:
     """Add ``--{prefix}.{field}`` for every field of dataclass ``cls`` (recursing into nested
-    dataclasses) to ``parser`` in their own help group. Returns the flag names added."""
+    dataclasses) to ``parser`` in their own help group. ``helps`` (field name -> text) replaces
+    :func:`field_help` for the top-level fields it names. Returns the flag names added."""
     group = parser.add_argument_group(
         title or f"{cls.__name__} (--{prefix}.FIELD; applied after the flags above)",
         f"every field of {cls.__module__}.{cls.__name__}; only the ones given change the defaults")
-    return _add(group, cls, prefix, skip)
+    return _add(group, cls, prefix, skip, helps or {})
 
 
-def _add(group, cls: type, prefix: str, skip: tuple[str, ...]) -> list[str]:
+def _add(group, cls: type, prefix: str, skip: tuple[str, ...], helps: dict[str, str] | None = None) -> list[str]:
+    helps = helps or {}
     added = []
     for f in dataclasses.fields(cls):
         if f.name in skip or not f.init:
@@ -110,7 +112,7 @@ def _add(group, cls: type, prefix: str, skip: tuple[str, ...]) -> list[str]:
         conv, metavar = _PARSERS[base]
         if optional:
             conv, metavar = _optional(conv), metavar + "|none"
-        doc = field_help(cls, f.name)
+        doc = helps.get(f.name) or field_help(cls, f.name)
         shown = json.dumps(default) if isinstance(default, dict) else (
             ",".join(map(str, default)) if isinstance(default, tuple) else default)
         help_ = f"{doc + '; ' if doc else ''}{base}{' or none' if optional else ''} (default: {shown})"

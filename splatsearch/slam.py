@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -224,7 +225,11 @@ class TrackerConfig:
     a run of at least ``F2F_DISTRUST_RUN`` links in a row that OpenCV failed or the gate rejected,
     the next this many accepted links give the rotation prior only, not the along-path one (where
     OpenCV fails often its accepted steps are also less reliable: on dev houses 4 and 25, 8-16 mm
-    errors that pass the gate, three of four right after such a run).
+    errors that pass the gate, three of four right after such a run). f2f_fallback_window (int >= 1,
+    None: off) and f2f_fallback_fail (in [0, 1)): while more than ``f2f_fallback_fail`` of the last
+    ``f2f_fallback_window`` links (raw frame to raw frame, held-out frames included; links not yet
+    made count as not failed) were failed by OpenCV, accepted links give the rotation prior only, as
+    stop 44's tracking did (where OpenCV fails this often its accepted distances are not trusted).
     """
 
     iters: int = 40
@@ -274,6 +279,8 @@ class TrackerConfig:
     f2f_retry_depth_diff: float | None = 0.15
     f2f_along_fade: float | None = None
     f2f_along_distrust: int | None = 2
+    f2f_fallback_window: int | None = None
+    f2f_fallback_fail: float = 0.35
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -289,6 +296,10 @@ class TrackerConfig:
             raise ValueError(f"f2f_along_fade must be None or a finite value > 0, got {self.f2f_along_fade}")
         if self.f2f_along_distrust is not None and not self.f2f_along_distrust >= 1:
             raise ValueError(f"f2f_along_distrust must be None or >= 1, got {self.f2f_along_distrust}")
+        if self.f2f_fallback_window is not None and not self.f2f_fallback_window >= 1:
+            raise ValueError(f"f2f_fallback_window must be None or >= 1, got {self.f2f_fallback_window}")
+        if not 0 <= self.f2f_fallback_fail < 1:
+            raise ValueError(f"f2f_fallback_fail must be in [0, 1), got {self.f2f_fallback_fail}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -826,6 +837,7 @@ class SLAM:
         self._f2f_bad_run = 0  # links in a row not accepted (f2f_along_distrust)
         self._f2f_distrust_left = 0  # accepted links still to be kept from the along prior
         self._f2f_untrusted = False  # a link of the current chain was
+        self._f2f_recent: deque[bool] = deque(maxlen=self.tcfg.f2f_fallback_window or 1)  # last links failed?
 
     @property
     def K(self):
@@ -1015,7 +1027,10 @@ class SLAM:
                                                     else "rejected")
             if status == "accepted":
                 break
+        self._f2f_recent.append(status == "failed")
         if status == "accepted":
+            if self._f2f_fallback():
+                self._f2f_untrusted = True
             if self.tcfg.f2f_along_distrust and self._f2f_bad_run >= F2F_DISTRUST_RUN:
                 self._f2f_distrust_left = self.tcfg.f2f_along_distrust
             if self._f2f_distrust_left > 0:
@@ -1032,6 +1047,12 @@ class SLAM:
         if rank[status] > rank[self._f2f_link]:
             self._f2f_link = status
         return status
+
+    def _f2f_fallback(self) -> bool:
+        """Whether OpenCV failed on more than ``f2f_fallback_fail`` of the last
+        ``f2f_fallback_window`` links (this one included; links not yet made count as not failed)."""
+        k = self.tcfg.f2f_fallback_window
+        return k is not None and sum(self._f2f_recent) > self.tcfg.f2f_fallback_fail * k
 
     def _f2f_reset(self, rgb: np.ndarray, depth: np.ndarray, odometry) -> None:
         """A processed frame starts a new chain."""
