@@ -360,7 +360,10 @@ class Mapper:
             if idx is not None:
                 if len(idx) == 0:
                     break
-                pc = pc[idx]
+                if 2 * len(idx) > n:
+                    idx = None  # most rows still unseen (the online map of a house): the gather costs more
+                else:
+                    pc = pc[idx]
             z = pc[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = K[0, 0] * pc[:, 0] / z + K[0, 2]
