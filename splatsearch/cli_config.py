@@ -1,6 +1,7 @@
 """Every field of a config dataclass as a command-line flag: ``--PREFIX.FIELD VALUE``.
 
-:func:`add_config_flags` adds one flag per field of :class:`~splatsearch.mapper.MapperConfig`, :class:`~splatsearch.slam.TrackerConfig`,
+:func:`add_config_flags` adds one flag per field of :class:`~splatsearch.mapper.MapperConfig`,
+:class:`~splatsearch.slam.TrackerConfig`,
 :class:`~splatsearch.agent.AgentConfig` (and nested ones, e.g. ``--agent.local_map.stride``), with
 the field's type, its default and the sentence of the class docstring that documents it as help.
 Only the flags a user gives are applied (:func:`config_overrides`), so the dataclass defaults stay

@@ -14,8 +14,8 @@ from types import SimpleNamespace
 
 from splatsearch.cli_types import positive_int
 
-__all__ = ["DEFAULTS", "JACOBIANS", "SOLVERS", "TRACKER_FIELD_HELP", "add_track_args", "flags_needing_track", "map_tracker_config",
-           "tracker_config"]
+__all__ = ["DEFAULTS", "JACOBIANS", "SOLVERS", "TRACKER_FIELD_HELP", "add_track_args", "flags_needing_track",
+           "map_tracker_config", "tracker_config"]
 
 #: TrackerConfig's defaults of the fields these options set (tests/test_f2f_prior.py checks them).
 DEFAULTS = dict(iters=40, solver="gn", gn_iters=10, gn_loss_tol=3e-3, coarse_iters=0, tol=1e-3, patience=0,
