@@ -209,7 +209,7 @@ def main(argv=None) -> int:
     # the warm-up `splatsearch eval --workers 1` does: threads, the persistent JAX compile cache,
     # Warp's kernels loaded
     warm_worker(cpu_threads(), ("splatsearch.episode",))
-    from look_again_dev import run
+    from look_again_dev import parse_agent_overrides, run
     from nvsm_views import dev_episodes, has_lookalike
 
     from splatsearch.evaluation import EVAL_SEED_BASE
@@ -218,13 +218,7 @@ def main(argv=None) -> int:
 
     if args.first_house + 10 >= EVAL_SEED_BASE:
         ap.error("dev houses only (seeds below 1000)")
-    overrides = {}
-    for kv in args.agent:
-        k, v = kv.split("=", 1)
-        try:
-            overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
-        except ValueError:
-            overrides[k] = v
+    overrides = parse_agent_overrides(args.agent)
     pool = dev_episodes(100, args.first_house, seed=0)
     chosen = [ep for ep in pool if has_lookalike(house_for_episode(ep), ep)][:args.episodes]
     if args.only:

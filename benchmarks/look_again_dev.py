@@ -28,6 +28,18 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
+def parse_agent_overrides(pairs: list[str]) -> dict:
+    """`--agent FIELD=VALUE` pairs -> {field: int | float | str} (a text value stays a string)."""
+    overrides = {}
+    for kv in pairs:
+        k, v = kv.split("=", 1)
+        try:
+            overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+        except ValueError:
+            overrides[k] = v  # a text field, e.g. confirm_by=rivals
+    return overrides
+
+
 def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: bool = False) -> dict:
     from nvsm_views import _nearest_instance
 
@@ -227,13 +239,7 @@ def main(argv=None) -> int:
 
     if args.first_house + 10 >= EVAL_SEED_BASE:
         ap.error("dev houses only (seeds below 1000)")
-    overrides = {}
-    for kv in args.agent:
-        k, v = kv.split("=", 1)
-        try:
-            overrides[k] = int(v) if v.lstrip("-").isdigit() else float(v)
-        except ValueError:
-            overrides[k] = v  # a text field, e.g. confirm_by=rivals
+    overrides = parse_agent_overrides(args.agent)
     pool = dev_episodes(100, args.first_house, seed=0) if not args.colour else default_episodes(100, args.first_house)
     chosen = [ep for ep in pool if has_lookalike(house_for_episode(ep), ep)][:args.episodes]
     if args.only:
