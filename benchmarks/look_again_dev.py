@@ -40,6 +40,25 @@ def parse_agent_overrides(pairs: list[str]) -> dict:
     return overrides
 
 
+def agent_config(look_again: int, overrides: dict, colour: bool = False):
+    """The episode's :class:`AgentConfig`: variant ``splatsearch`` with ``overrides``; a dotted key
+    (``local_map.refine_iters``) sets a field of a nested config (as ``--agent.local_map.*``)."""
+    from splatsearch.agent import AgentConfig
+    from splatsearch.cli_config import apply_overrides
+
+    flat = {k: v for k, v in overrides.items() if "." not in k}
+    nested: dict = {}
+    for k, v in overrides.items():
+        if "." in k:
+            *path, leaf = k.split(".")
+            node = nested
+            for p in path:
+                node = node.setdefault(p, {})
+            node[leaf] = v
+    cfg = AgentConfig(variant="splatsearch", colour_cue=colour, look_again=look_again, **flat)
+    return apply_overrides(cfg, nested) if nested else cfg
+
+
 def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: bool = False) -> dict:
     from nvsm_views import _nearest_instance
 
@@ -49,7 +68,7 @@ def run(ep, look_again: int, max_steps: int | None, overrides: dict, colour: boo
     from splatsearch.sim.episodes import house_for_episode
 
     env = HouseEnv(house_for_episode(ep), width=ep.goal_width, height=ep.goal_height)
-    cfg = AgentConfig(variant="splatsearch", colour_cue=colour, look_again=look_again, **overrides)
+    cfg = agent_config(look_again, overrides, colour)
     holder = {}
     statuses = []
 

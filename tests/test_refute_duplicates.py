@@ -39,8 +39,12 @@ def _policy(refute_radius: float):
     return pol, db, (a, b, far, sofa)
 
 
-def test_off_by_default_a_refusal_covers_only_its_own_entry():
-    assert AgentConfig().refute_radius == 0.0
+def test_default_radius_is_tau_d():
+    # stop 48: the dev rule of stop 47 passed; the radius is the DB's own merge distance
+    assert AgentConfig().refute_radius == 1.0 == AgentConfig().tau_d
+
+
+def test_radius_0_a_refusal_covers_only_its_own_entry():
     pol, db, (a, b, far, sofa) = _policy(0.0)
     assert pol.is_refuted(db[a]) and not pol.is_refuted(db[b])
     assert [e.id for e in pol.goal_candidates()] == [b, far, sofa]

@@ -111,11 +111,13 @@ class AgentConfig:
     ambiguous objects get their look-again trips first, since one may be the goal and overtake it,
     and with none left the match stands). ``look_again_after_refute`` lets look-again trips begin
     only once a confirm trip has refuted a match in the episode (a look-alike is about, so the
-    ambiguous objects are worth a trip). ``refute_radius`` (m, 0 = off, the default): a refusal also covers every
-    same-class entry whose centroid lies within this distance of the refuted one's, a duplicate DB
-    entry of the same physical object, for as long as neither has reached confirm_below (centroids
-    drift as views accumulate, so two entries made more than ``tau_d`` apart can end up on one
-    object; issue 23, stop 47).
+    ambiguous objects are worth a trip). ``refute_radius`` (m, 0 = off, default 1.0 = ``tau_d``):
+    a refusal also covers every same-class entry whose centroid lies within this distance of the
+    refuted one's, a duplicate DB entry of the same physical object, for as long as neither has
+    reached confirm_below (centroids drift as views accumulate, so two entries made more than
+    ``tau_d`` apart can end up on one object). Issue 23: built at stop 47, the default since
+    stop 48, where its dev rule passed on 8 episodes of houses 508-509 (none of which had a
+    duplicate to refuse).
 
     Planning: ``alpha``, ``beta``, ``delta``: eq 19 weights. ``stop_margin`` (m): stop this close
     to a goal object's extent. ``goal_patience``: reachable steps without getting 0.1 m closer
@@ -166,7 +168,7 @@ class AgentConfig:
     look_again_after_refute: bool = True
     confirm_below: float = 18.0
     confirm_by: str = "new_frame"
-    refute_radius: float = 0.0
+    refute_radius: float = 1.0
     colour_cue: bool = True
     tau_a: float = 0.45
     colour_min_views: int = 2
