@@ -191,7 +191,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=None, help="comma-separated episode indices (0-based) of the selection")
     ap.add_argument("--max-steps", type=int, default=None, help="step cap (default the episode's)")
     ap.add_argument("--look-again", type=int, default=1, help="AgentConfig.look_again (default 1, today's default)")
-    ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE", help="extra AgentConfig field")
+    ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE",
+                    help="extra AgentConfig field (dotted for a nested one: local_map.refine_iters=8)")
     ap.add_argument("--out", default=None, help="output folder (one JSON per episode)")
     ap.add_argument("--compare", nargs=2, default=None, metavar=("BEFORE", "AFTER"),
                     help="check that two runs' shared episodes decided the same, print the speed-up and exit")

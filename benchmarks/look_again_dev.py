@@ -216,7 +216,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-steps", type=int, default=None, help="step cap (default the episode's, 1000)")
     ap.add_argument("--only", default=None, help="comma-separated episode indices (0-based) of the 16 to run")
     ap.add_argument("--agent", action="append", default=[], metavar="FIELD=VALUE",
-                    help="extra AgentConfig field (int, float or text), e.g. look_again_low=8")
+                    help="extra AgentConfig field (int, float or text), e.g. look_again_low=8; a dotted name sets a "
+                         "nested config's field, e.g. local_map.refine_iters=8")
     ap.add_argument("--out", default=None, help="output folder (one JSON per episode, resumable)")
     ap.add_argument("--reverse", action="store_true", help="run the episodes last first")
     ap.add_argument("--pair", default=None, metavar="DIR",
