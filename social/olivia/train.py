@@ -771,8 +771,8 @@ def apply_llu(planner: OliviaNav, buf: LLUBuffer, captions: Sequence[str], llu: 
     eq 4 fine-tunes F_I and F_T (:func:`llu_update`), D_T is rebuilt with the new F_T from the
     offline captions (``train_captions``, default the planner's D_T's) plus the new ones, and with
     ``llu.view_entries`` gets one entry per view keyed by its E_I (:func:`add_view_entries`).
-    Returns the updated planner (whose TPN keeps the F_I it was trained with, ``clip_tpn``) and
-    eq 4's per-step losses."""
+    Returns the updated planner (whose TPN keeps the F_I it was trained with, ``clip_tpn``, unless
+    ``llu.tpn_encoder`` is "updated") and eq 4's per-step losses."""
     imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
                      for im in buf.images])
     new_clip, losses = llu_update(planner.params["clip"], imgs, list(captions), llu, planner.cfg.clip)
@@ -782,10 +782,11 @@ def apply_llu(planner: OliviaNav, buf: LLUBuffer, captions: Sequence[str], llu: 
         db = add_view_entries(db, encode_all_images(new_clip, imgs, planner.cfg.clip),
                               encode_all_texts(new_clip, list(captions), planner.cfg.clip), list(captions),
                               np.stack(buf.persons) if len(buf.persons) == len(captions) else None)
-    # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans
-    after = OliviaNav(dict(planner.params, clip=new_clip,
-                           clip_tpn=planner.params.get("clip_tpn", planner.params["clip"])),
-                      db, planner.cfg, planner.variant)
+    if llu.tpn_encoder == "updated":  # the thesis: F_I^(i_t) feeds the TPN and retrieval alike
+        params = {k: v for k, v in planner.params.items() if k != "clip_tpn"} | {"clip": new_clip}
+    else:  # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans (stop 34)
+        params = dict(planner.params, clip=new_clip, clip_tpn=planner.params.get("clip_tpn", planner.params["clip"]))
+    after = OliviaNav(params, db, planner.cfg, planner.variant)
     return after, losses
 
 
