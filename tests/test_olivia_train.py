@@ -362,3 +362,49 @@ def test_an_update_with_the_updated_tpn_encoder_changes_the_plans():
     assert "clip_tpn" in kept.params and "clip_tpn" not in moved.params
     np.testing.assert_allclose(kept.plan(*obs).trajs, before, rtol=1e-5, atol=1e-5)
     assert not np.allclose(moved.plan(*obs).trajs, before, atol=1e-5)
+
+
+def _drift_left(dy: float) -> np.ndarray:
+    """A hand-made 4 s buffer future (HORIZON, 3), robot frame: 2 m ahead, ending ``dy`` m left."""
+    from splatsearch.social.olivia.features import HORIZON
+
+    f = np.linspace(0.0, 1.0, HORIZON + 1)[1:]
+    x, y = 2.0 * f, dy * f ** 2
+    return np.stack([x, y, np.arctan2(np.gradient(y), np.gradient(x))], -1)
+
+
+def test_llu_caption_keep_captions_a_small_left_drift_keep_left():
+    """LLUConfig.caption_keep: a 0.2 m left drift over 4 s is "keep left" for the buffer under the
+    option, "straight" at the default (the training data's 0.35 m, unchanged)."""
+    from splatsearch.social.olivia.captions import ACTIONS
+    from splatsearch.social.olivia.features import KEEP_THRESHOLD, action_of
+
+    traj = _drift_left(0.2)
+    assert LLUConfig().caption_keep == KEEP_THRESHOLD == 0.35
+    assert ACTIONS[action_of(traj, LLUConfig().caption_keep)] == "straight"
+    assert ACTIONS[action_of(traj)] == "straight"
+    assert ACTIONS[action_of(traj, LLUConfig(caption_keep=0.15).caption_keep)] == "keep_left"
+    assert ACTIONS[action_of(_drift_left(-0.2), 0.15)] == "keep_right"
+    with pytest.raises(ValueError):
+        LLUConfig(caption_keep=0.0)
+
+
+def test_fill_buffer_passes_caption_keep_to_the_buffer_episodes(monkeypatch):
+    """Only the buffer's episodes get the threshold (None: not passed, the episode's default)."""
+    from types import SimpleNamespace
+
+    from splatsearch.social.olivia.llu import LLUBuffer
+
+    got = []
+
+    def episode(scn, planner, buffer=None, buffer_every=2, reference_shift=None, **kw):
+        got.append(kw.get("caption_keep", "default"))
+        for _ in range(2):
+            buffer.add(np.zeros((IMG_H, IMG_W, 3), np.uint8))
+
+    monkeypatch.setattr(ot, "run_olivia_episode", episode)
+    monkeypatch.setattr(ot, "make_scenario", lambda name, seed: SimpleNamespace(seed=seed))
+    buf, used = ot.fill_buffer(None, "doorway", [1, 2, 3], 4, caption_keep=0.2, carry_shift=False)
+    assert isinstance(buf, LLUBuffer) and buf.full and used == [1, 2] and got == [0.2, 0.2]
+    ot.fill_buffer(None, "doorway", [1, 2], 4, carry_shift=False)
+    assert got[2:] == ["default", "default"]

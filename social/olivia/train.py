@@ -665,7 +665,7 @@ def reference_shift_of(scn, cache: "BaselineCache | None" = None) -> Callable[[i
 
 def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], size: int,
                 buffer_every: int = 2, oncoming_share: float = 0.0, cache: "BaselineCache | None" = None,
-                carry_shift: bool = True) -> tuple[LLUBuffer, list[int]]:
+                carry_shift: bool = True, caption_keep: float | None = None) -> tuple[LLUBuffer, list[int]]:
     """The LLU buffer B of |B| = ``size`` images from OLiVia-Nav driving the adaptation episodes
     of ``scenario`` (every ``buffer_every``-th plan offers its view). Returns B and the seeds
     driven. Raises RuntimeError when the episodes end before B is full: the update is defined on
@@ -681,7 +681,10 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
 
     ``carry_shift``: the captioner's walker is forked with the lateral shift the reference's own
     episode holds at that step (:func:`reference_shift_of`, episodes through ``cache``); False:
-    with none (before stop 45: it undid the reference's head-on sidestep at 2-3 s)."""
+    with none (before stop 45: it undid the reference's head-on sidestep at 2-3 s).
+    ``caption_keep`` (m): the side threshold of the captions' action
+    (:attr:`LLUConfig.caption_keep`); None: the training data's 0.35 m."""
+    keep = {} if caption_keep is None else {"caption_keep": float(caption_keep)}
     if not 0.0 <= oncoming_share <= 1.0:
         raise ValueError(f"oncoming_share must be in [0, 1], got {oncoming_share}")
     used: list[int] = []
@@ -692,14 +695,14 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
                 break
             scn = make_scenario(scenario, seed)
             run_olivia_episode(scn, planner, buffer=buf, buffer_every=buffer_every,
-                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None)
+                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None, **keep)
             used.append(int(seed))
     else:
         pool = LLUBuffer(10 ** 9, lazy=True)
         for seed in adapt_seeds:
             scn = make_scenario(scenario, seed)
             run_olivia_episode(scn, planner, buffer=pool, buffer_every=buffer_every,
-                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None)
+                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None, **keep)
             used.append(int(seed))
         if len(pool.images) >= size:
             buf = pool.select(select_views(np.asarray(pool.oncoming), size, oncoming_share), size)
@@ -825,7 +828,8 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
     before_seeds = evaluate(planner, variants if before_variants is None else before_variants)
-    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share, cache)
+    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share, cache,
+                            caption_keep=llu.caption_keep)
     captions = caption_buffer(buf)
     after_planner, losses = apply_llu(planner, buf, captions, llu, train_captions)
     db = after_planner.db
