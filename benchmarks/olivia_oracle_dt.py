@@ -9,17 +9,17 @@ Usage: python benchmarks/olivia_oracle_dt.py --checkpoint T0/olivia.npz --seeds 
 [--after-seen]
 
 Only for development seeds: it runs the privileged captioner on the evaluated episode itself.
-The planner module's ``observe``, ``step_unicycle`` and ``pedsim`` are wrapped (in this process only)
-to read the state the captioner needs; the episode loop itself is the library's, unchanged.
+The state the captioner needs is read through ``olivia_episode_fork`` (the planner module's hooks
+wrapped in this process only); the episode loop itself is the library's, unchanged.
 """
 import argparse
 import json
+import os
+import sys
 import time
-import types
 
 import numpy as np
 
-from splatsearch.social.convoi import pedsim
 from splatsearch.social.convoi.runner import REFERENCE
 from splatsearch.social.convoi.scenarios import make_scenario
 from splatsearch.social.olivia import planner as pm
@@ -29,6 +29,9 @@ from splatsearch.social.olivia.llu import add_view_entries
 from splatsearch.social.olivia.train import (encode_all_images, encode_all_texts, episode_metrics, load_planner,
                                              reference_shift_of, run_baseline)
 from splatsearch.social.olivia.baseline_cache import BaselineCache
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from olivia_episode_fork import install, reset  # noqa: E402
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 ap.add_argument("--checkpoint", required=True)
@@ -44,29 +47,8 @@ cache = BaselineCache(args.baseline_cache) if args.baseline_cache else None
 base = load_planner(ck)
 clip = base.params["clip"]
 cap = TemplateCaptioner()
-state: dict = {}
 
-orig_observe, orig_unicycle = pm.observe, pm.step_unicycle
-
-
-def observe(scn, pose, people, prev_pose, prev_people, path=None):
-    state["pose"] = np.asarray(pose)
-    return orig_observe(scn, pose, people, prev_pose, prev_people, path)
-
-
-def step_unicycle(pose, cmd, dt):
-    state["cmd"] = np.asarray(cmd)
-    return orig_unicycle(pose, cmd, dt)
-
-
-def step(peds, *a, **k):
-    new, info = pedsim.step(peds, *a, **k)
-    state["peds"], state["t"] = new, state["t"] + 1
-    return new, info
-
-
-pm.observe, pm.step_unicycle = observe, step_unicycle
-pm.pedsim = types.SimpleNamespace(step=step, step_key=pedsim.step_key, SocialForceConfig=pedsim.SocialForceConfig)
+state = install()
 
 
 class Oracle:
@@ -104,8 +86,7 @@ rows = []
 t0 = time.time()
 for seed in seeds:
     scn = make_scenario("doorway", seed)
-    state.clear()
-    state.update(t=0, peds=scn.peds, cmd=np.zeros(2, np.float32), pose=np.asarray(scn.start))
+    reset(scn)
     o = Oracle(scn)
     res = pm.run_olivia_episode(scn, o)
     m = episode_metrics(res, run_baseline(scn, REFERENCE, cache))

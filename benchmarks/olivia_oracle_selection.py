@@ -17,19 +17,19 @@ as the target is decided: unreachable even if every seed not yet run went to 0, 
 if every seed not yet run stayed at its ``--before`` value.
 
 Only for development seeds: it runs the reference walker on the evaluated episode itself. The
-planner module's ``observe``, ``step_unicycle`` and ``pedsim`` are wrapped (in this process only)
-to read the state the walker needs; the episode loop itself is the library's, unchanged.
+state the walker needs is read through ``olivia_episode_fork`` (the planner module's hooks
+wrapped in this process only); the episode loop itself is the library's, unchanged.
 """
 import argparse
 import dataclasses
 import json
+import os
+import sys
 import time
-import types
 
 import jax.numpy as jnp
 import numpy as np
 
-from splatsearch.social.convoi import pedsim
 from splatsearch.social.convoi.human import HumanWalkerConfig, walker_rollout
 from splatsearch.social.convoi.perception import visible_people
 from splatsearch.social.convoi.runner import GOAL_TOLERANCE, REFERENCE
@@ -39,6 +39,9 @@ from splatsearch.social.olivia.baseline_cache import BaselineCache
 from splatsearch.social.olivia.captions import ACTIONS
 from splatsearch.social.olivia.features import FUTURE_STRIDE, HORIZON, action_of, extend_to_goal, future_in_frame
 from splatsearch.social.olivia.train import episode_metrics, load_planner, reference_shift_of, run_baseline
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from olivia_episode_fork import install, reset  # noqa: E402
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 ap.add_argument("--checkpoint", required=True)
@@ -54,29 +57,8 @@ before = {int(k): float(v) for k, v in (kv.split("=") for kv in args.before.spli
 cache = BaselineCache(args.baseline_cache) if args.baseline_cache else None
 base = load_planner(args.checkpoint)
 walker_cfg = HumanWalkerConfig(perceive=REFERENCE == "human")
-state: dict = {}
 
-orig_observe, orig_unicycle = pm.observe, pm.step_unicycle
-
-
-def observe(scn, pose, people, prev_pose, prev_people, path=None):
-    state["pose"] = np.asarray(pose)
-    return orig_observe(scn, pose, people, prev_pose, prev_people, path)
-
-
-def step_unicycle(pose, cmd, dt):
-    state["cmd"] = np.asarray(cmd)
-    return orig_unicycle(pose, cmd, dt)
-
-
-def step(peds, *a, **k):
-    new, info = pedsim.step(peds, *a, **k)
-    state["peds"], state["t"] = new, state["t"] + 1
-    return new, info
-
-
-pm.observe, pm.step_unicycle = observe, step_unicycle
-pm.pedsim = types.SimpleNamespace(step=step, step_key=pedsim.step_key, SocialForceConfig=pedsim.SocialForceConfig)
+state = install()
 
 
 class Oracle:
@@ -117,8 +99,7 @@ t0 = time.time()
 decided = None
 for n, seed in enumerate(seeds):
     scn = make_scenario("doorway", seed)
-    state.clear()
-    state.update(t=0, peds=scn.peds, cmd=np.zeros(2, np.float32), pose=np.asarray(scn.start))
+    reset(scn)
     o = Oracle(scn)
     res = pm.run_olivia_episode(scn, o)
     m = episode_metrics(res, run_baseline(scn, REFERENCE, cache))

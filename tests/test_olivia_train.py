@@ -326,3 +326,85 @@ def test_after_an_update_the_tpn_keeps_its_encoder_and_view_entries_pass_the_gat
     dbv = add_view_entries(db, e_i, ot.encode_all_texts(moved, ["you should yield"], cfg.clip), ["you should yield"])
     r = OliviaNav(dict(params, clip=moved, clip_tpn=params["clip"]), dbv, cfg).plan(*obs)
     assert r.caption == "you should yield" and r.similarity > cfg.view_gate
+
+
+def test_llu_config_refuses_an_unknown_tpn_encoder():
+    with pytest.raises(ValueError):
+        LLUConfig(tpn_encoder="both")
+
+
+@pytest.mark.slow
+def test_an_update_with_the_updated_tpn_encoder_changes_the_plans():
+    """tpn_encoder "updated" (the thesis: F_I^(i_t) feeds the TPN): no ``clip_tpn`` is kept, so the
+    update moves the TPN's plans; the default keeps them."""
+    from splatsearch.social.olivia import tpn
+    from splatsearch.social.olivia import tsm
+    from splatsearch.social.olivia.features import GOAL_DIM
+    from splatsearch.social.olivia.lidar import N_POINTS
+    from splatsearch.social.olivia.llu import LLUBuffer
+    from splatsearch.social.olivia.planner import OliviaConfig, OliviaNav
+
+    cfg = OliviaConfig()
+    k = jax.random.split(jax.random.PRNGKey(1), 3)
+    params = {"clip": sc_clip.init_sc_clip(k[0], cfg.clip), "tpn": tpn.init_tpn(k[1], cfg.tpn),
+              "tsm": tsm.init_tsm(k[2], cfg.tsm)}
+    planner = OliviaNav(params, build_text_db(params["clip"], CAPTIONS, cfg.clip), cfg)
+    rng = np.random.default_rng(1)
+    buf = LLUBuffer(4)
+    for _ in range(4):
+        buf.add(rng.integers(0, 255, (IMG_H, IMG_W, 3)).astype(np.uint8))
+    obs = (buf.images[0], rng.normal(size=(N_POINTS, 4)).astype(np.float32), np.ones(N_POINTS, bool),
+           rng.normal(size=GOAL_DIM).astype(np.float32))
+    before = planner.plan(*obs).trajs
+    small = dict(size=4, steps=3, batch=4, lr=1e-3)
+    kept, _ = ot.apply_llu(planner, buf, CAPTIONS[:4], LLUConfig(**small))
+    moved, _ = ot.apply_llu(planner, buf, CAPTIONS[:4], LLUConfig(**small, tpn_encoder="updated"))
+    assert "clip_tpn" in kept.params and "clip_tpn" not in moved.params
+    np.testing.assert_allclose(kept.plan(*obs).trajs, before, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(moved.plan(*obs).trajs, before, atol=1e-5)
+
+
+def _drift_left(dy: float) -> np.ndarray:
+    """A hand-made 4 s buffer future (HORIZON, 3), robot frame: 2 m ahead, ending ``dy`` m left."""
+    from splatsearch.social.olivia.features import HORIZON
+
+    f = np.linspace(0.0, 1.0, HORIZON + 1)[1:]
+    x, y = 2.0 * f, dy * f ** 2
+    return np.stack([x, y, np.arctan2(np.gradient(y), np.gradient(x))], -1)
+
+
+def test_llu_caption_keep_captions_a_small_left_drift_keep_left():
+    """LLUConfig.caption_keep: a 0.2 m left drift over 4 s is "keep left" for the buffer under the
+    option, "straight" at the default (the training data's 0.35 m, unchanged)."""
+    from splatsearch.social.olivia.captions import ACTIONS
+    from splatsearch.social.olivia.features import KEEP_THRESHOLD, action_of
+
+    traj = _drift_left(0.2)
+    assert LLUConfig().caption_keep == KEEP_THRESHOLD == 0.35
+    assert ACTIONS[action_of(traj, LLUConfig().caption_keep)] == "straight"
+    assert ACTIONS[action_of(traj)] == "straight"
+    assert ACTIONS[action_of(traj, LLUConfig(caption_keep=0.15).caption_keep)] == "keep_left"
+    assert ACTIONS[action_of(_drift_left(-0.2), 0.15)] == "keep_right"
+    with pytest.raises(ValueError):
+        LLUConfig(caption_keep=0.0)
+
+
+def test_fill_buffer_passes_caption_keep_to_the_buffer_episodes(monkeypatch):
+    """Only the buffer's episodes get the threshold (None: not passed, the episode's default)."""
+    from types import SimpleNamespace
+
+    from splatsearch.social.olivia.llu import LLUBuffer
+
+    got = []
+
+    def episode(scn, planner, buffer=None, buffer_every=2, reference_shift=None, **kw):
+        got.append(kw.get("caption_keep", "default"))
+        for _ in range(2):
+            buffer.add(np.zeros((IMG_H, IMG_W, 3), np.uint8))
+
+    monkeypatch.setattr(ot, "run_olivia_episode", episode)
+    monkeypatch.setattr(ot, "make_scenario", lambda name, seed: SimpleNamespace(seed=seed))
+    buf, used = ot.fill_buffer(None, "doorway", [1, 2, 3], 4, caption_keep=0.2, carry_shift=False)
+    assert isinstance(buf, LLUBuffer) and buf.full and used == [1, 2] and got == [0.2, 0.2]
+    ot.fill_buffer(None, "doorway", [1, 2], 4, carry_shift=False)
+    assert got[2:] == ["default", "default"]

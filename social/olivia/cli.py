@@ -113,6 +113,13 @@ def register_olivia(social_subparsers) -> None:
                    help=f"seeds Table II is measured on (default: {LLU_TEST_SEEDS[0]}-{LLU_TEST_SEEDS[-1]})")
     e.add_argument("--llu-size", type=int, default=50, help="LLU buffer size |B| in images")
     e.add_argument("--llu-mu", type=float, default=0.05, help="eq 4 temperature")
+    e.add_argument("--llu-tpn-encoder", choices=("trained", "updated"), default="trained",
+                   help="the F_I that gives the TPN its E_I after an update: the one it was trained with "
+                        "(default) or the updated one (the thesis)")
+    e.add_argument("--llu-caption-keep", type=float, default=0.35,
+                   help="m: a buffer view is captioned keep left / right when the reference's 4 s future ends more "
+                        "than this far to the side (default 0.35, the training data's threshold; only the LLU "
+                        "buffer's captions change)")
     e.add_argument("--llu-oncoming-share", type=float, default=0.5,
                    help="0: the buffer is the first --llu-size views of the adaptation seeds, in order; in (0, 1]: "
                         "every adaptation seed is driven and the buffer keeps up to this share of views with a person "
@@ -290,7 +297,8 @@ def cmd_eval(args) -> int:
             result["table1"] = rows
             md = "## Table I (held-out seeds " + ", ".join(map(str, args.seeds)) + ")\n\n" + format_table_one(rows)
         if not args.no_table2:
-            llu = LLUConfig(size=args.llu_size, mu=args.llu_mu)
+            llu = LLUConfig(size=args.llu_size, mu=args.llu_mu, tpn_encoder=args.llu_tpn_encoder,
+                            caption_keep=args.llu_caption_keep)
             rows2, _, info = table_two(planner, args.llu_scenario[0], args.llu_adapt_seeds, args.llu_test_seeds, llu,
                                        log=console.log, progress=prog, cache=cache,
                                        buffer_every=args.llu_buffer_every, oncoming_share=args.llu_oncoming_share,

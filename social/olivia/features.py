@@ -114,10 +114,15 @@ def extend_to_goal(poses: np.ndarray, goal: np.ndarray, min_step: float = 0.05) 
     return np.concatenate([poses, tail])
 
 
-def action_of(traj) -> int:
+#: m: how far to the side a trajectory must end to be "keep left / right" (training data, TSM, and
+#: by default the LLU buffer's captions; :attr:`~splatsearch.social.olivia.llu.LLUConfig.caption_keep`).
+KEEP_THRESHOLD = 0.35
+
+
+def action_of(traj, keep: float = KEEP_THRESHOLD) -> int:
     """Index into :data:`ACTIONS` of a robot-frame trajectory (HORIZON, >= 2) (metres, rad):
     ``yield`` if it advances < 0.6 m over the horizon, ``turn_*`` if it ends turned > 0.7 rad,
-    ``keep_*`` if it ends > 0.35 m to the side, else ``straight``."""
+    ``keep_*`` if it ends > ``keep`` m (default 0.35) to the side, else ``straight``."""
     tr = np.asarray(traj, np.float64)
     if tr.ndim != 2 or tr.shape[1] < 2:
         raise ValueError(f"traj must be (N, 2+) robot-frame poses, got {tr.shape}")
@@ -129,16 +134,16 @@ def action_of(traj) -> int:
         return ACTIONS.index("turn_left")
     if yaw < -0.7:
         return ACTIONS.index("turn_right")
-    if end[1] < -0.35:
+    if end[1] < -keep:
         return ACTIONS.index("keep_right")
-    if end[1] > 0.35:
+    if end[1] > keep:
         return ACTIONS.index("keep_left")
     return ACTIONS.index("straight")
 
 
 def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedState, t_index: int,
                   world: World | None = None, reference: str | None = None, offset: float | None = None,
-                  seen: np.ndarray | None = None) -> int:
+                  seen: np.ndarray | None = None, keep: float = KEEP_THRESHOLD) -> int:
     """The "correct" high-level action (index into :data:`ACTIONS`) at an arbitrary state: the
     action of the expert's future from there (:func:`splatsearch.social.convoi.runner.expert_rollout`
     over the TPN horizon, continued to the goal when it arrives), labelled like the training
@@ -151,7 +156,16 @@ def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedSta
     the DWA-with-critics). ``offset`` (m, human walker only): the lateral shift the forked walker
     holds (:func:`~splatsearch.social.convoi.human.walker_rollout`); None or 0: none chosen yet.
     ``seen`` (P,) bool (perceiving walker only): the people the forked walker already knows (the
-    robot's own perception so far); None: those visible from ``pose``."""
+    robot's own perception so far); None: those visible from ``pose``. ``keep`` (m): the
+    :func:`action_of` side threshold (the LLU buffer may caption with its own)."""
+    return action_of(expert_future(scn, pose, vel, peds, t_index, world, reference, offset, seen), keep)
+
+
+def expert_future(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedState, t_index: int,
+                  world: World | None = None, reference: str | None = None, offset: float | None = None,
+                  seen: np.ndarray | None = None) -> np.ndarray:
+    """The reference's future from ``pose`` in the robot frame, (HORIZON, 3) (m, rad), as
+    :func:`expert_action` labels it (arguments as there)."""
     from ..convoi.runner import GOAL_TOLERANCE, REFERENCE, WALKERS, expert_rollout
 
     ref = reference or REFERENCE
@@ -164,7 +178,7 @@ def expert_action(scn: Scenario, pose: np.ndarray, vel: np.ndarray, peds: PedSta
         poses = expert_rollout(scn, pose, vel, peds, t_index, FUTURE_STRIDE * HORIZON, world)
     if np.linalg.norm(poses[-1, :2] - np.asarray(scn.goal)[:2]) < GOAL_TOLERANCE:
         poses = extend_to_goal(poses, scn.goal)
-    return action_of(future_in_frame(poses, 0, np.asarray(pose, np.float64)))
+    return future_in_frame(poses, 0, np.asarray(pose, np.float64))
 
 
 @dataclass(frozen=True)

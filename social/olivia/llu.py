@@ -124,7 +124,12 @@ class LLUConfig:
     """size: |B| images per update; mu: eq 4 temperature; steps: optimiser steps per update;
     lr: AdamW learning rate; weight_decay; batch: images per step; view_entries: D_T also gets
     each buffer caption keyed by its view's E_I (:func:`add_view_entries`; False: the thesis'
-    D_T, text keys only)."""
+    D_T, text keys only); tpn_encoder: which F_I gives the TPN its E_I after an update,
+    "trained" (the F_I the TPN was trained with, kept as ``clip_tpn``; since stop 34) or
+    "updated" (F_I^(i_t), as in the thesis: the update then changes the plans too); caption_keep
+    (m): how far to the side the reference's 4 s future must end for a buffer view to be
+    captioned keep left / right (only the LLU buffer's captions; training data and the TSM keep
+    :data:`~splatsearch.social.olivia.features.KEEP_THRESHOLD`, 0.35 m, the default here)."""
 
     size: int = 50
     mu: float = 0.05
@@ -133,6 +138,14 @@ class LLUConfig:
     weight_decay: float = 0.01
     batch: int = 50
     view_entries: bool = True
+    tpn_encoder: str = "trained"
+    caption_keep: float = 0.35
+
+    def __post_init__(self):
+        if not self.caption_keep > 0:
+            raise ValueError(f"LLUConfig.caption_keep must be > 0 m, got {self.caption_keep}")
+        if self.tpn_encoder not in ("trained", "updated"):
+            raise ValueError(f"LLUConfig.tpn_encoder must be 'trained' or 'updated', got {self.tpn_encoder!r}")
 
 
 @dataclass

@@ -31,7 +31,7 @@ from ..convoi.dwa import step_unicycle
 from ..convoi.geometry import F32, field_lookup, robot_to_world
 from .llu import LLUBuffer, TextDB
 from .captions import ACTIONS, caption_scene
-from .features import HORIZON, expert_action, observe
+from .features import HORIZON, KEEP_THRESHOLD, expert_action, observe
 from ..convoi.perception import visible_people
 from .lidar import PREV_STEPS
 from .person_key import person_distance2, person_state
@@ -280,7 +280,7 @@ def route_ahead(path: np.ndarray, xy: np.ndarray, n: int, step: float = 0.24) ->
 def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | None = None,
                        buffer: LLUBuffer | None = None, buffer_every: int = 5,
                        sf: pedsim.SocialForceConfig | None = None, trace: list | None = None,
-                       reference_shift=None) -> EpisodeResult:
+                       reference_shift=None, caption_keep: float = KEEP_THRESHOLD) -> EpisodeResult:
     """Drive OLiVia-Nav through ``scn`` (same loop as :func:`splatsearch.social.convoi.runner.run_episode`:
     move the robot, refusing moves into walls, then step the people, who see it). With
     ``buffer``, every ``buffer_every``-th view is stored for the LLU with its privileged scene,
@@ -295,7 +295,9 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
     simulator's people ``peds`` and the robot's last command ``cmd`` (for a reference rollout
     from that state). ``reference_shift``: optional callable step -> the lateral shift (m) the
     reference walker's own episode holds at that step; the captioner's walker is forked with
-    it (see :func:`~splatsearch.social.olivia.features.expert_action`), else with none."""
+    it (see :func:`~splatsearch.social.olivia.features.expert_action`), else with none.
+    ``caption_keep`` (m): the side threshold of the buffer scenes' action (default the training
+    data's, :data:`~splatsearch.social.olivia.features.KEEP_THRESHOLD`)."""
     cfg = planner.cfg
     sf = sf or pedsim.SocialForceConfig(dt=scn.dt, robot_radius=ROBOT_RADIUS)
     caps, valid = scn.padded_capsules()
@@ -370,7 +372,7 @@ def run_olivia_episode(scn: Scenario, planner: OliviaNav, *, max_steps: int | No
                     # moment it begins (its change cost flips it): fork the one that chose it
                     off = reference_shift(t) if reference_shift is not None else None
                     # the perceiving walker forked here knows whom the robot has perceived so far
-                    act = expert_action(scn, pose, cmd, peds, t, expert_world, offset=off, seen=known)
+                    act = expert_action(scn, pose, cmd, peds, t, expert_world, offset=off, seen=known, keep=caption_keep)
                     return caption_scene(scn, pose, people_now, np.asarray(peds.vel), act)
 
                 seen = np.asarray(visible_people(jnp.asarray(pose), jnp.asarray(people[-1]), act, caps, valid))

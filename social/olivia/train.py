@@ -665,7 +665,7 @@ def reference_shift_of(scn, cache: "BaselineCache | None" = None) -> Callable[[i
 
 def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], size: int,
                 buffer_every: int = 2, oncoming_share: float = 0.0, cache: "BaselineCache | None" = None,
-                carry_shift: bool = True) -> tuple[LLUBuffer, list[int]]:
+                carry_shift: bool = True, caption_keep: float | None = None) -> tuple[LLUBuffer, list[int]]:
     """The LLU buffer B of |B| = ``size`` images from OLiVia-Nav driving the adaptation episodes
     of ``scenario`` (every ``buffer_every``-th plan offers its view). Returns B and the seeds
     driven. Raises RuntimeError when the episodes end before B is full: the update is defined on
@@ -681,7 +681,10 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
 
     ``carry_shift``: the captioner's walker is forked with the lateral shift the reference's own
     episode holds at that step (:func:`reference_shift_of`, episodes through ``cache``); False:
-    with none (before stop 45: it undid the reference's head-on sidestep at 2-3 s)."""
+    with none (before stop 45: it undid the reference's head-on sidestep at 2-3 s).
+    ``caption_keep`` (m): the side threshold of the captions' action
+    (:attr:`LLUConfig.caption_keep`); None: the training data's 0.35 m."""
+    keep = {} if caption_keep is None else {"caption_keep": float(caption_keep)}
     if not 0.0 <= oncoming_share <= 1.0:
         raise ValueError(f"oncoming_share must be in [0, 1], got {oncoming_share}")
     used: list[int] = []
@@ -692,14 +695,14 @@ def fill_buffer(planner: OliviaNav, scenario: str, adapt_seeds: Sequence[int], s
                 break
             scn = make_scenario(scenario, seed)
             run_olivia_episode(scn, planner, buffer=buf, buffer_every=buffer_every,
-                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None)
+                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None, **keep)
             used.append(int(seed))
     else:
         pool = LLUBuffer(10 ** 9, lazy=True)
         for seed in adapt_seeds:
             scn = make_scenario(scenario, seed)
             run_olivia_episode(scn, planner, buffer=pool, buffer_every=buffer_every,
-                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None)
+                               reference_shift=reference_shift_of(scn, cache) if carry_shift else None, **keep)
             used.append(int(seed))
         if len(pool.images) >= size:
             buf = pool.select(select_views(np.asarray(pool.oncoming), size, oncoming_share), size)
@@ -771,8 +774,8 @@ def apply_llu(planner: OliviaNav, buf: LLUBuffer, captions: Sequence[str], llu: 
     eq 4 fine-tunes F_I and F_T (:func:`llu_update`), D_T is rebuilt with the new F_T from the
     offline captions (``train_captions``, default the planner's D_T's) plus the new ones, and with
     ``llu.view_entries`` gets one entry per view keyed by its E_I (:func:`add_view_entries`).
-    Returns the updated planner (whose TPN keeps the F_I it was trained with, ``clip_tpn``) and
-    eq 4's per-step losses."""
+    Returns the updated planner (whose TPN keeps the F_I it was trained with, ``clip_tpn``, unless
+    ``llu.tpn_encoder`` is "updated") and eq 4's per-step losses."""
     imgs = np.stack([(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8) if im.dtype != np.uint8 else im
                      for im in buf.images])
     new_clip, losses = llu_update(planner.params["clip"], imgs, list(captions), llu, planner.cfg.clip)
@@ -782,10 +785,11 @@ def apply_llu(planner: OliviaNav, buf: LLUBuffer, captions: Sequence[str], llu: 
         db = add_view_entries(db, encode_all_images(new_clip, imgs, planner.cfg.clip),
                               encode_all_texts(new_clip, list(captions), planner.cfg.clip), list(captions),
                               np.stack(buf.persons) if len(buf.persons) == len(captions) else None)
-    # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans
-    after = OliviaNav(dict(planner.params, clip=new_clip,
-                           clip_tpn=planner.params.get("clip_tpn", planner.params["clip"])),
-                      db, planner.cfg, planner.variant)
+    if llu.tpn_encoder == "updated":  # the thesis: F_I^(i_t) feeds the TPN and retrieval alike
+        params = {k: v for k, v in planner.params.items() if k != "clip_tpn"} | {"clip": new_clip}
+    else:  # the TPN keeps the E_I it was trained on: fine-tuning F_I moved it enough to break plans (stop 34)
+        params = dict(planner.params, clip=new_clip, clip_tpn=planner.params.get("clip_tpn", planner.params["clip"]))
+    after = OliviaNav(params, db, planner.cfg, planner.variant)
     return after, losses
 
 
@@ -824,7 +828,8 @@ def table_two(planner: OliviaNav, scenario: str = "doorway", adapt_seeds: Sequen
 
     tid = progress.add_task("Table II", total=2 * len(test_seeds)) if progress is not None else None
     before_seeds = evaluate(planner, variants if before_variants is None else before_variants)
-    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share, cache)
+    buf, used = fill_buffer(planner, scenario, adapt_seeds, llu.size, buffer_every, oncoming_share, cache,
+                            caption_keep=llu.caption_keep)
     captions = caption_buffer(buf)
     after_planner, losses = apply_llu(planner, buf, captions, llu, train_captions)
     db = after_planner.db
