@@ -233,6 +233,9 @@ def main(argv=None) -> int:
                         f"accepted links give the rotation only, or 'off' (default {_default(d.f2f_fallback_window)})")
     p.add_argument("--f2f-fallback-fail", type=float, default=d.f2f_fallback_fail,
                    help=f"the failed share of --f2f-fallback-window (default {_default(d.f2f_fallback_fail)})")
+    p.add_argument("--f2f-along-check", type=_opt_float, default=d.f2f_along_check,
+                   help="an accepted link whose along distance differs from the odometry's by more than this many "
+                        f"odometry sigmas gives the rotation only, or 'off' (default {_default(d.f2f_along_check)})")
     p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"or 'off' (default {_default(d.f2f_retry_depth_diff)})")
@@ -272,7 +275,8 @@ def main(argv=None) -> int:
                          f2f_trans_sigma=a.f2f_trans_sigma, f2f_along_sigma=a.f2f_along_sigma,
                          f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian,
                          f2f_along_fade=a.f2f_along_fade, f2f_along_distrust=a.f2f_along_distrust,
-                         f2f_fallback_window=a.f2f_fallback_window, f2f_fallback_fail=a.f2f_fallback_fail)
+                         f2f_fallback_window=a.f2f_fallback_window, f2f_fallback_fail=a.f2f_fallback_fail,
+                         f2f_along_check=a.f2f_along_check)
     try:
         tcfg.validate()
     except ValueError as e:

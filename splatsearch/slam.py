@@ -230,6 +230,10 @@ class TrackerConfig:
     ``f2f_fallback_window`` links (raw frame to raw frame, held-out frames included; links not yet
     made count as not failed) were failed by OpenCV, accepted links give the rotation prior only, as
     stop 44's tracking did (where OpenCV fails this often its accepted distances are not trusted).
+    f2f_along_check (k > 0, None: off): an accepted link whose OpenCV distance along the wheel
+    odometry's direction of motion differs from the odometry's own by more than k x the odometry
+    prior's translation sigma for that link (:meth:`prior_sigma`) gives the rotation prior only (the
+    gate allows 3 sigma on the whole displacement; this asks the along part alone to agree better).
     """
 
     iters: int = 40
@@ -281,6 +285,7 @@ class TrackerConfig:
     f2f_along_distrust: int | None = 2
     f2f_fallback_window: int | None = None
     f2f_fallback_fail: float = 0.35
+    f2f_along_check: float | None = None
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -300,6 +305,8 @@ class TrackerConfig:
             raise ValueError(f"f2f_fallback_window must be None or >= 1, got {self.f2f_fallback_window}")
         if not 0 <= self.f2f_fallback_fail < 1:
             raise ValueError(f"f2f_fallback_fail must be in [0, 1), got {self.f2f_fallback_fail}")
+        if self.f2f_along_check is not None and not (self.f2f_along_check > 0 and math.isfinite(self.f2f_along_check)):
+            raise ValueError(f"f2f_along_check must be None or a finite value > 0, got {self.f2f_along_check}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -1029,7 +1036,7 @@ class SLAM:
                 break
         self._f2f_recent.append(status == "failed")
         if status == "accepted":
-            if self._f2f_fallback():
+            if self._f2f_fallback() or self._f2f_along_disagrees(step, odo, st):
                 self._f2f_untrusted = True
             if self.tcfg.f2f_along_distrust and self._f2f_bad_run >= F2F_DISTRUST_RUN:
                 self._f2f_distrust_left = self.tcfg.f2f_along_distrust
@@ -1047,6 +1054,19 @@ class SLAM:
         if rank[status] > rank[self._f2f_link]:
             self._f2f_link = status
         return status
+
+    def _f2f_along_disagrees(self, step: np.ndarray, odo: np.ndarray, sigma_trans: float) -> bool:
+        """Whether an accepted link's OpenCV step ``step`` (4, 4) moves along the odometry's direction
+        of motion (``odo`` (4, 4), the link's odometry step) by more than ``f2f_along_check`` x
+        ``sigma_trans`` (m) away from the odometry's distance (never when off or not moving)."""
+        k = self.tcfg.f2f_along_check
+        if k is None:
+            return False
+        d_odo = odometry_f2f.camera_displacement(odo)
+        dist = float(np.linalg.norm(d_odo))
+        if dist < 1e-3:
+            return False
+        return abs(float((odometry_f2f.camera_displacement(step) - d_odo) @ d_odo) / dist) > k * sigma_trans
 
     def _f2f_fallback(self) -> bool:
         """Whether OpenCV failed on more than ``f2f_fallback_fail`` of the last

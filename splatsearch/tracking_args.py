@@ -110,6 +110,8 @@ TRACKER_FIELD_HELP = {
     "f2f_fallback_window": "links in the window of f2f_fallback_fail (none: off)",
     "f2f_fallback_fail": "while more than this share of the last f2f_fallback_window links failed, accepted "
                          "links give the rotation only",
+    "f2f_along_check": "an accepted link whose along distance differs from the odometry's by more than this "
+                       "many odometry sigmas gives the rotation only (none: off)",
 }
 
 
