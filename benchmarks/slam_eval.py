@@ -236,6 +236,12 @@ def main(argv=None) -> int:
     p.add_argument("--f2f-along-check", type=_opt_float, default=d.f2f_along_check,
                    help="an accepted link whose along distance differs from the odometry's by more than this many "
                         f"odometry sigmas gives the rotation only, or 'off' (default {_default(d.f2f_along_check)})")
+    p.add_argument("--f2f-loose-window", type=_opt_count, default=d.f2f_loose_window,
+                   help="mark frames loose (MapperConfig.pose_lr_trans_loose) while more than --f2f-loose-fail of "
+                        f"this many last links failed, or 'off' (default {_default(d.f2f_loose_window)}: "
+                        "a frame whose own link failed or was rejected)")
+    p.add_argument("--f2f-loose-fail", type=float, default=d.f2f_loose_fail,
+                   help=f"the failed share of --f2f-loose-window (default {_default(d.f2f_loose_fail)})")
     p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"or 'off' (default {_default(d.f2f_retry_depth_diff)})")
@@ -276,7 +282,8 @@ def main(argv=None) -> int:
                          f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian,
                          f2f_along_fade=a.f2f_along_fade, f2f_along_distrust=a.f2f_along_distrust,
                          f2f_fallback_window=a.f2f_fallback_window, f2f_fallback_fail=a.f2f_fallback_fail,
-                         f2f_along_check=a.f2f_along_check)
+                         f2f_along_check=a.f2f_along_check, f2f_loose_window=a.f2f_loose_window,
+                         f2f_loose_fail=a.f2f_loose_fail)
     try:
         tcfg.validate()
     except ValueError as e:

@@ -234,6 +234,14 @@ class TrackerConfig:
     odometry's direction of motion differs from the odometry's own by more than k x the odometry
     prior's translation sigma for that link (:meth:`prior_sigma`) gives the rotation prior only (the
     gate allows 3 sigma on the whole displacement; this asks the along part alone to agree better).
+    f2f_loose_window (int >= 1, None: off) and f2f_loose_fail (in [0, 1)): which processed frames
+    are marked ``loose`` for :class:`~splatsearch.mapper.Mapper` (whose
+    ``MapperConfig.pose_lr_trans_loose``, when set, is then their keyframe refinement's translation
+    step): off, a frame whose own frame-to-frame link failed or was rejected; set, instead, every
+    frame processed while more than ``f2f_loose_fail`` of the last ``f2f_loose_window`` links
+    (raw frames, held-out ones included; links not yet made count as not failed) were failed by
+    OpenCV, whatever its own link (a stretch of walk where OpenCV fails often, and the heading the
+    tracker carries out of it has drifted: dev house 170 at stop 48).
     """
 
     iters: int = 40
@@ -286,6 +294,8 @@ class TrackerConfig:
     f2f_fallback_window: int | None = None
     f2f_fallback_fail: float = 0.35
     f2f_along_check: float | None = None
+    f2f_loose_window: int | None = None
+    f2f_loose_fail: float = 0.25
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -305,6 +315,10 @@ class TrackerConfig:
             raise ValueError(f"f2f_fallback_window must be None or >= 1, got {self.f2f_fallback_window}")
         if not 0 <= self.f2f_fallback_fail < 1:
             raise ValueError(f"f2f_fallback_fail must be in [0, 1), got {self.f2f_fallback_fail}")
+        if self.f2f_loose_window is not None and not self.f2f_loose_window >= 1:
+            raise ValueError(f"f2f_loose_window must be None or >= 1, got {self.f2f_loose_window}")
+        if not 0 <= self.f2f_loose_fail < 1:
+            raise ValueError(f"f2f_loose_fail must be in [0, 1), got {self.f2f_loose_fail}")
         if self.f2f_along_check is not None and not (self.f2f_along_check > 0 and math.isfinite(self.f2f_along_check)):
             raise ValueError(f"f2f_along_check must be None or a finite value > 0, got {self.f2f_along_check}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
@@ -845,6 +859,7 @@ class SLAM:
         self._f2f_distrust_left = 0  # accepted links still to be kept from the along prior
         self._f2f_untrusted = False  # a link of the current chain was
         self._f2f_recent: deque[bool] = deque(maxlen=self.tcfg.f2f_fallback_window or 1)  # last links failed?
+        self._f2f_recent_loose: deque[bool] = deque(maxlen=self.tcfg.f2f_loose_window or 1)  # the same, loose window
 
     @property
     def K(self):
@@ -968,10 +983,11 @@ class SLAM:
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat
         t0 = time.perf_counter()
-        # a frame whose frame-to-frame step failed or was rejected had no along-path anchor:
+        # a frame whose frame-to-frame step failed or was rejected had no along-path anchor
+        # (or, with f2f_loose_window, one in a stretch where OpenCV fails often):
         # MapperConfig.pose_lr_trans_loose (when set) lets the map pull it further
         stats = self.mapper.update(rgb, depth, pose, refine_pose=self.track_enabled and not first, tag=i,
-                                   loose=self._f2f_status in ("failed", "rejected"))
+                                   loose=self._loose())
         self._apply_refined(stats.pop("poses", {}))
         pose = np.asarray(stats.pop("viewmat", pose), np.float32)
         return self._finish(FrameResult(i, pose, "first" if first else "mapped", tr, t_track,
@@ -1035,6 +1051,7 @@ class SLAM:
             if status == "accepted":
                 break
         self._f2f_recent.append(status == "failed")
+        self._f2f_recent_loose.append(status == "failed")
         if status == "accepted":
             if self._f2f_fallback() or self._f2f_along_disagrees(step, odo, st):
                 self._f2f_untrusted = True
@@ -1067,6 +1084,13 @@ class SLAM:
         if dist < 1e-3:
             return False
         return abs(float((odometry_f2f.camera_displacement(step) - d_odo) @ d_odo) / dist) > k * sigma_trans
+
+    def _loose(self) -> bool:
+        """Whether the frame being mapped is marked loose (see ``TrackerConfig.f2f_loose_window``)."""
+        k = self.tcfg.f2f_loose_window
+        if k is None:
+            return self._f2f_status in ("failed", "rejected")
+        return sum(self._f2f_recent_loose) > self.tcfg.f2f_loose_fail * k
 
     def _f2f_fallback(self) -> bool:
         """Whether OpenCV failed on more than ``f2f_fallback_fail`` of the last

@@ -112,6 +112,9 @@ TRACKER_FIELD_HELP = {
                          "links give the rotation only",
     "f2f_along_check": "an accepted link whose along distance differs from the odometry's by more than this "
                        "many odometry sigmas gives the rotation only (none: off)",
+    "f2f_loose_window": "mark frames loose (the mapper's pose_lr_trans_loose) while more than f2f_loose_fail of "
+                        "this many last links failed (none: a frame whose own link failed or was rejected)",
+    "f2f_loose_fail": "the failed share of f2f_loose_window",
 }
 
 
