@@ -242,6 +242,8 @@ def main(argv=None) -> int:
                         "a frame whose own link failed or was rejected)")
     p.add_argument("--f2f-loose-fail", type=float, default=d.f2f_loose_fail,
                    help=f"the failed share of --f2f-loose-window (default {_default(d.f2f_loose_fail)})")
+    p.add_argument("--f2f-loose-latch", action="store_true",
+                   help="with --f2f-loose-window: once it has marked a frame, mark every later frame too")
     p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"or 'off' (default {_default(d.f2f_retry_depth_diff)})")
@@ -283,7 +285,7 @@ def main(argv=None) -> int:
                          f2f_along_fade=a.f2f_along_fade, f2f_along_distrust=a.f2f_along_distrust,
                          f2f_fallback_window=a.f2f_fallback_window, f2f_fallback_fail=a.f2f_fallback_fail,
                          f2f_along_check=a.f2f_along_check, f2f_loose_window=a.f2f_loose_window,
-                         f2f_loose_fail=a.f2f_loose_fail)
+                         f2f_loose_fail=a.f2f_loose_fail, f2f_loose_latch=a.f2f_loose_latch)
     try:
         tcfg.validate()
     except ValueError as e:

@@ -241,7 +241,8 @@ class TrackerConfig:
     frame processed while more than ``f2f_loose_fail`` of the last ``f2f_loose_window`` links
     (raw frames, held-out ones included; links not yet made count as not failed) were failed by
     OpenCV, whatever its own link (a stretch of walk where OpenCV fails often, and the heading the
-    tracker carries out of it has drifted: dev house 170 at stop 48).
+    tracker carries out of it has drifted: dev house 170 at stop 48). f2f_loose_latch (with
+    f2f_loose_window): once that window has marked a frame, every later frame is marked too.
     """
 
     iters: int = 40
@@ -296,6 +297,7 @@ class TrackerConfig:
     f2f_along_check: float | None = None
     f2f_loose_window: int | None = None
     f2f_loose_fail: float = 0.25
+    f2f_loose_latch: bool = False
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -860,6 +862,7 @@ class SLAM:
         self._f2f_untrusted = False  # a link of the current chain was
         self._f2f_recent: deque[bool] = deque(maxlen=self.tcfg.f2f_fallback_window or 1)  # last links failed?
         self._f2f_recent_loose: deque[bool] = deque(maxlen=self.tcfg.f2f_loose_window or 1)  # the same, loose window
+        self._loose_latched = False  # f2f_loose_latch: the loose window has fired once
 
     @property
     def K(self):
@@ -1090,7 +1093,10 @@ class SLAM:
         k = self.tcfg.f2f_loose_window
         if k is None:
             return self._f2f_status in ("failed", "rejected")
-        return sum(self._f2f_recent_loose) > self.tcfg.f2f_loose_fail * k
+        fired = sum(self._f2f_recent_loose) > self.tcfg.f2f_loose_fail * k
+        if fired and self.tcfg.f2f_loose_latch:
+            self._loose_latched = True
+        return fired or self._loose_latched
 
     def _f2f_fallback(self) -> bool:
         """Whether OpenCV failed on more than ``f2f_fallback_fail`` of the last

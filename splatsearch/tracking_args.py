@@ -115,6 +115,7 @@ TRACKER_FIELD_HELP = {
     "f2f_loose_window": "mark frames loose (the mapper's pose_lr_trans_loose) while more than f2f_loose_fail of "
                         "this many last links failed (none: a frame whose own link failed or was rejected)",
     "f2f_loose_fail": "the failed share of f2f_loose_window",
+    "f2f_loose_latch": "with f2f_loose_window: once it has marked a frame, every later frame is marked too",
 }
 
 

@@ -57,3 +57,13 @@ def test_window_marks_every_frame_while_the_recent_links_fail_often(monkeypatch)
     assert got[4] and links[4] == "A" and not got[1] and not got[8]
     # not-yet-made links count as not failed: 2 failed of a window of 10 is not more than 0.25
     assert not any(_loose_after(monkeypatch, "FF", f2f_loose_window=10, f2f_loose_fail=0.25))
+
+
+def test_latch_keeps_marking_after_the_window_fired(monkeypatch):
+    links = "AFFFAAAARAAA"
+    plain = _loose_after(monkeypatch, links, f2f_loose_window=4, f2f_loose_fail=0.5)
+    latched = _loose_after(monkeypatch, links, f2f_loose_window=4, f2f_loose_fail=0.5, f2f_loose_latch=True)
+    first = plain.index(True)
+    assert latched == [False] * first + [True] * (len(links) - first)
+    # never fired: the latch marks nothing
+    assert not any(_loose_after(monkeypatch, "AFAFAA", f2f_loose_window=4, f2f_loose_fail=0.5, f2f_loose_latch=True))
