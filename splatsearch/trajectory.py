@@ -75,9 +75,10 @@ def frame_errors(est_viewmats, gt_viewmats, up=(0.0, 0.0, 1.0), alignment=None) 
     """Per-frame errors of estimated against ground-truth poses (both (N, 4, 4) world-to-camera,
     same frames; a frame non-finite on either side gets NaN) after a rigid alignment of the
     estimate: :func:`ate`'s (so the RMS of ``error`` is the ATE) or the given ``alignment``
-    (R (3, 3), t (3,)), for instance another trajectory's. Returns dict: ``error`` (N,) m, ``offset`` (N, 3) m (aligned estimate minus truth,
-    world frame), ``along`` / ``across`` (N,) m (the offset's components along / left of the true
-    camera's viewing direction projected on the horizontal, ``up`` being the world's vertical),
+    (R (3, 3), t (3,)), for instance another trajectory's. Returns dict: ``error`` (N,) m,
+    ``offset`` (N, 3) m (aligned estimate minus truth, world frame), ``along`` / ``across`` (N,) m
+    (the offset's components along / left of the true camera's viewing direction projected on the
+    horizontal, ``up`` being the world's vertical),
     ``yaw`` (N,) rad (the aligned estimate's heading about ``up`` minus the truth's, in (-pi, pi]),
     ``R``, ``t`` the alignment used."""
     est, gt = np.asarray(est_viewmats, np.float64), np.asarray(gt_viewmats, np.float64)
