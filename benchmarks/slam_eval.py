@@ -23,10 +23,13 @@ import os
 import sys
 import time
 
+import numpy as np
+
 from splatsearch import datasets
 from splatsearch.map_job import MapJob, map_sequence
 from splatsearch.mapper import MapperConfig
 from splatsearch.slam import JACOBIANS, SOLVERS, TrackerConfig, parse_lateral_sigma
+from splatsearch.trajectory import frame_errors, read_tum
 
 TUM = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz_first10")
 
@@ -62,10 +65,48 @@ def _brief(s: dict) -> dict:
     return out
 
 
+FRAME_ERROR_COLUMNS = ("frame", "status", "f2f", "error_cm", "along_cm", "across_cm", "yaw_deg",
+                       "track_error_cm", "track_along_cm", "track_across_cm", "track_yaw_deg")
+
+
+def frame_error_rows(summary: dict, est, gt) -> list[dict]:
+    """One row (FRAME_ERROR_COLUMNS) per processed frame of a run with ground truth: the final
+    pose's error after the ATE alignment (cm; along / left of the true viewing direction; yaw in
+    degrees) and the same for the tracker's pose before the mapper's pose refinement moved it
+    (``track_*``, under the final trajectory's alignment; the final pose where none was logged).
+    ``summary``: map_sequence's; ``est`` (N, 4, 4) the run's trajectory; ``gt`` (N, 4, 4) the truth
+    of the same frames."""
+    pf = summary["timing"]["per_frame"]
+    est = np.asarray(est, np.float64)
+    trk = np.array([np.array(r["track_viewmat"], np.float64).reshape(4, 4) if r.get("track_viewmat") else e
+                    for r, e in zip(pf, est)])
+    fe = frame_errors(est, gt)
+    ft = frame_errors(trk, gt, alignment=(fe["R"], fe["t"]))
+    return [{"frame": r["frame"], "status": r["status"], "f2f": r.get("f2f"),
+             "error_cm": 100 * fe["error"][k], "along_cm": 100 * fe["along"][k], "across_cm": 100 * fe["across"][k],
+             "yaw_deg": float(np.degrees(fe["yaw"][k])), "track_error_cm": 100 * ft["error"][k],
+             "track_along_cm": 100 * ft["along"][k], "track_across_cm": 100 * ft["across"][k],
+             "track_yaw_deg": float(np.degrees(ft["yaw"][k]))} for k, r in enumerate(pf)]
+
+
+def write_frame_errors(path: str, rows: list[dict]) -> None:
+    """``rows`` (frame_error_rows) as a tab-separated file with a header line."""
+    with open(path, "w") as f:
+        f.write("\t".join(FRAME_ERROR_COLUMNS) + "\n")
+        for r in rows:
+            f.write("\t".join(f"{r[c]:.4f}" if isinstance(r[c], float) else str(r[c]) for c in FRAME_ERROR_COLUMNS)
+                    + "\n")
+
+
 def _run(name: str, seq, job: MapJob, out: str) -> dict:
     load0 = _load()
     t0 = time.perf_counter()
-    _, summary = map_sequence(seq, job, os.path.join(out, name))
+    slam, summary = map_sequence(seq, job, os.path.join(out, name))
+    if "ate" in summary and not summary["interrupted"]:
+        # where the ATE comes from, frame by frame (frame_errors.tsv beside summary.json)
+        done = [r["frame"] for r in summary["timing"]["per_frame"]]
+        write_frame_errors(os.path.join(out, name, "frame_errors.tsv"),
+                           frame_error_rows(summary, slam.trajectory(), seq.gt_viewmats()[done]))
     rec = {"run": name, "mapper_set": dict(_SET), "load_start": load0, "load_end": _load(), "cpus": os.cpu_count(),
            "seconds": time.perf_counter() - t0, **_brief(summary)}
     os.makedirs(out, exist_ok=True)
@@ -123,7 +164,9 @@ def _default(value) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["tum", "sim", "speed"])
+    p.add_argument("what", choices=["tum", "sim", "speed", "frame-errors"],
+                   help="frame-errors: write frame_errors.tsv for an earlier sim run's folder (--out RUN_DIR, its "
+                        "--seed and --frames), no mapping")
     p.add_argument("--downscale", type=int, default=2, help="TUM image size divisor (default 2: 320x240)")
     p.add_argument("--frames", type=int, default=100, help="simulator walk length (default 100)")
     p.add_argument("--seed", type=int, default=0, help="dev house seed (default 0; >= 1000 only with --evaluation)")
@@ -190,6 +233,17 @@ def main(argv=None) -> int:
                         f"accepted links give the rotation only, or 'off' (default {_default(d.f2f_fallback_window)})")
     p.add_argument("--f2f-fallback-fail", type=float, default=d.f2f_fallback_fail,
                    help=f"the failed share of --f2f-fallback-window (default {_default(d.f2f_fallback_fail)})")
+    p.add_argument("--f2f-along-check", type=_opt_float, default=d.f2f_along_check,
+                   help="an accepted link whose along distance differs from the odometry's by more than this many "
+                        f"odometry sigmas gives the rotation only, or 'off' (default {_default(d.f2f_along_check)})")
+    p.add_argument("--f2f-loose-window", type=_opt_count, default=d.f2f_loose_window,
+                   help="mark frames loose (MapperConfig.pose_lr_trans_loose) while more than --f2f-loose-fail of "
+                        f"this many last links failed, or 'off' (default {_default(d.f2f_loose_window)}: "
+                        "a frame whose own link failed or was rejected)")
+    p.add_argument("--f2f-loose-fail", type=float, default=d.f2f_loose_fail,
+                   help=f"the failed share of --f2f-loose-window (default {_default(d.f2f_loose_fail)})")
+    p.add_argument("--f2f-loose-latch", action="store_true",
+                   help="with --f2f-loose-window: once it has marked a frame, mark every later frame too")
     p.add_argument("--f2f-retry-depth-diff", type=_opt_float, default=d.f2f_retry_depth_diff,
                    help="retry a failed or rejected frame-to-frame step with this ICP depth limit in m "
                         f"or 'off' (default {_default(d.f2f_retry_depth_diff)})")
@@ -229,7 +283,9 @@ def main(argv=None) -> int:
                          f2f_trans_sigma=a.f2f_trans_sigma, f2f_along_sigma=a.f2f_along_sigma,
                          f2f_retry_depth_diff=a.f2f_retry_depth_diff, jacobian=a.track_jacobian,
                          f2f_along_fade=a.f2f_along_fade, f2f_along_distrust=a.f2f_along_distrust,
-                         f2f_fallback_window=a.f2f_fallback_window, f2f_fallback_fail=a.f2f_fallback_fail)
+                         f2f_fallback_window=a.f2f_fallback_window, f2f_fallback_fail=a.f2f_fallback_fail,
+                         f2f_along_check=a.f2f_along_check, f2f_loose_window=a.f2f_loose_window,
+                         f2f_loose_fail=a.f2f_loose_fail, f2f_loose_latch=a.f2f_loose_latch)
     try:
         tcfg.validate()
     except ValueError as e:
@@ -274,6 +330,16 @@ def main(argv=None) -> int:
                                                refine=REAL_REFINE), a.out)
         if go("tum_gt_holdout"):
             _run("tum_gt_holdout", seq, MapJob(MapperConfig(**REAL), tcfg, holdout_every=5, refine=REAL_REFINE), a.out)
+    elif a.what == "frame-errors":
+        seq = datasets.sim_walk(a.seed, a.frames, 320, 240, odometry_seed=a.seed)
+        with open(os.path.join(a.out, "summary.json")) as f:
+            summary = json.load(f)
+        _, est = read_tum(os.path.join(a.out, "trajectory.txt"))
+        done = [r["frame"] for r in summary["timing"]["per_frame"]]
+        rows = frame_error_rows(summary, est, seq.gt_viewmats()[done])
+        write_frame_errors(os.path.join(a.out, "frame_errors.tsv"), rows)
+        print(f"{a.out}/frame_errors.tsv: {len(rows)} frames, ATE "
+              f"{100 * np.sqrt(np.nanmean([r['error_cm'] ** 2 / 1e4 for r in rows])):.2f} cm")
     else:
         seq = datasets.sim_walk(a.seed, a.frames, 320, 240,
                                 odometry_seed=a.seed if a.odometry_seed is None else a.odometry_seed)

@@ -230,6 +230,19 @@ class TrackerConfig:
     ``f2f_fallback_window`` links (raw frame to raw frame, held-out frames included; links not yet
     made count as not failed) were failed by OpenCV, accepted links give the rotation prior only, as
     stop 44's tracking did (where OpenCV fails this often its accepted distances are not trusted).
+    f2f_along_check (k > 0, None: off): an accepted link whose OpenCV distance along the wheel
+    odometry's direction of motion differs from the odometry's own by more than k x the odometry
+    prior's translation sigma for that link (:meth:`prior_sigma`) gives the rotation prior only (the
+    gate allows 3 sigma on the whole displacement; this asks the along part alone to agree better).
+    f2f_loose_window (int >= 1, None: off) and f2f_loose_fail (in [0, 1)): which processed frames
+    are marked ``loose`` for :class:`~splatsearch.mapper.Mapper` (whose
+    ``MapperConfig.pose_lr_trans_loose``, when set, is then their keyframe refinement's translation
+    step): off, a frame whose own frame-to-frame link failed or was rejected; set, instead, every
+    frame processed while more than ``f2f_loose_fail`` of the last ``f2f_loose_window`` links
+    (raw frames, held-out ones included; links not yet made count as not failed) were failed by
+    OpenCV, whatever its own link (a stretch of walk where OpenCV fails often, and the heading the
+    tracker carries out of it has drifted: dev house 170 at stop 48). f2f_loose_latch (with
+    f2f_loose_window): once that window has marked a frame, every later frame is marked too.
     """
 
     iters: int = 40
@@ -281,6 +294,10 @@ class TrackerConfig:
     f2f_along_distrust: int | None = 2
     f2f_fallback_window: int | None = None
     f2f_fallback_fail: float = 0.35
+    f2f_along_check: float | None = None
+    f2f_loose_window: int | None = None
+    f2f_loose_fail: float = 0.25
+    f2f_loose_latch: bool = False
 
     def validate(self) -> None:
         if not (self.f2f_rot_sigma > 0 and math.isfinite(self.f2f_rot_sigma)):
@@ -300,6 +317,12 @@ class TrackerConfig:
             raise ValueError(f"f2f_fallback_window must be None or >= 1, got {self.f2f_fallback_window}")
         if not 0 <= self.f2f_fallback_fail < 1:
             raise ValueError(f"f2f_fallback_fail must be in [0, 1), got {self.f2f_fallback_fail}")
+        if self.f2f_loose_window is not None and not self.f2f_loose_window >= 1:
+            raise ValueError(f"f2f_loose_window must be None or >= 1, got {self.f2f_loose_window}")
+        if not 0 <= self.f2f_loose_fail < 1:
+            raise ValueError(f"f2f_loose_fail must be in [0, 1), got {self.f2f_loose_fail}")
+        if self.f2f_along_check is not None and not (self.f2f_along_check > 0 and math.isfinite(self.f2f_along_check)):
+            raise ValueError(f"f2f_along_check must be None or a finite value > 0, got {self.f2f_along_check}")
         if not (self.f2f_max_depth_diff > 0 and math.isfinite(self.f2f_max_depth_diff)):
             raise ValueError(f"f2f_max_depth_diff must be a finite value > 0, got {self.f2f_max_depth_diff}")
         if self.jacobian not in JACOBIANS:
@@ -838,6 +861,8 @@ class SLAM:
         self._f2f_distrust_left = 0  # accepted links still to be kept from the along prior
         self._f2f_untrusted = False  # a link of the current chain was
         self._f2f_recent: deque[bool] = deque(maxlen=self.tcfg.f2f_fallback_window or 1)  # last links failed?
+        self._f2f_recent_loose: deque[bool] = deque(maxlen=self.tcfg.f2f_loose_window or 1)  # the same, loose window
+        self._loose_latched = False  # f2f_loose_latch: the loose window has fired once
 
     @property
     def K(self):
@@ -961,10 +986,11 @@ class SLAM:
                 return self._finish(FrameResult(i, pose, "skipped_tracking", tr, t_track))
             pose = tr.viewmat
         t0 = time.perf_counter()
-        # a frame whose frame-to-frame step failed or was rejected had no along-path anchor:
+        # a frame whose frame-to-frame step failed or was rejected had no along-path anchor
+        # (or, with f2f_loose_window, one in a stretch where OpenCV fails often):
         # MapperConfig.pose_lr_trans_loose (when set) lets the map pull it further
         stats = self.mapper.update(rgb, depth, pose, refine_pose=self.track_enabled and not first, tag=i,
-                                   loose=self._f2f_status in ("failed", "rejected"))
+                                   loose=self._loose())
         self._apply_refined(stats.pop("poses", {}))
         pose = np.asarray(stats.pop("viewmat", pose), np.float32)
         return self._finish(FrameResult(i, pose, "first" if first else "mapped", tr, t_track,
@@ -1028,8 +1054,9 @@ class SLAM:
             if status == "accepted":
                 break
         self._f2f_recent.append(status == "failed")
+        self._f2f_recent_loose.append(status == "failed")
         if status == "accepted":
-            if self._f2f_fallback():
+            if self._f2f_fallback() or self._f2f_along_disagrees(step, odo, st):
                 self._f2f_untrusted = True
             if self.tcfg.f2f_along_distrust and self._f2f_bad_run >= F2F_DISTRUST_RUN:
                 self._f2f_distrust_left = self.tcfg.f2f_along_distrust
@@ -1047,6 +1074,29 @@ class SLAM:
         if rank[status] > rank[self._f2f_link]:
             self._f2f_link = status
         return status
+
+    def _f2f_along_disagrees(self, step: np.ndarray, odo: np.ndarray, sigma_trans: float) -> bool:
+        """Whether an accepted link's OpenCV step ``step`` (4, 4) moves along the odometry's direction
+        of motion (``odo`` (4, 4), the link's odometry step) by more than ``f2f_along_check`` x
+        ``sigma_trans`` (m) away from the odometry's distance (never when off or not moving)."""
+        k = self.tcfg.f2f_along_check
+        if k is None:
+            return False
+        d_odo = odometry_f2f.camera_displacement(odo)
+        dist = float(np.linalg.norm(d_odo))
+        if dist < 1e-3:
+            return False
+        return abs(float((odometry_f2f.camera_displacement(step) - d_odo) @ d_odo) / dist) > k * sigma_trans
+
+    def _loose(self) -> bool:
+        """Whether the frame being mapped is marked loose (see ``TrackerConfig.f2f_loose_window``)."""
+        k = self.tcfg.f2f_loose_window
+        if k is None:
+            return self._f2f_status in ("failed", "rejected")
+        fired = sum(self._f2f_recent_loose) > self.tcfg.f2f_loose_fail * k
+        if fired and self.tcfg.f2f_loose_latch:
+            self._loose_latched = True
+        return fired or self._loose_latched
 
     def _f2f_fallback(self) -> bool:
         """Whether OpenCV failed on more than ``f2f_fallback_fail`` of the last

@@ -110,6 +110,12 @@ TRACKER_FIELD_HELP = {
     "f2f_fallback_window": "links in the window of f2f_fallback_fail (none: off)",
     "f2f_fallback_fail": "while more than this share of the last f2f_fallback_window links failed, accepted "
                          "links give the rotation only",
+    "f2f_along_check": "an accepted link whose along distance differs from the odometry's by more than this "
+                       "many odometry sigmas gives the rotation only (none: off)",
+    "f2f_loose_window": "mark frames loose (the mapper's pose_lr_trans_loose) while more than f2f_loose_fail of "
+                        "this many last links failed (none: a frame whose own link failed or was rejected)",
+    "f2f_loose_fail": "the failed share of f2f_loose_window",
+    "f2f_loose_latch": "with f2f_loose_window: once it has marked a frame, every later frame is marked too",
 }
 
 

@@ -71,6 +71,42 @@ def ate(est_viewmats, gt_viewmats, align: bool = True) -> dict:
             "max": float(err.max()), "n": int(ok.sum()), "errors": err, "R": R, "t": t}
 
 
+def frame_errors(est_viewmats, gt_viewmats, up=(0.0, 0.0, 1.0), alignment=None) -> dict:
+    """Per-frame errors of estimated against ground-truth poses (both (N, 4, 4) world-to-camera,
+    same frames; a frame non-finite on either side gets NaN) after a rigid alignment of the
+    estimate: :func:`ate`'s (so the RMS of ``error`` is the ATE) or the given ``alignment``
+    (R (3, 3), t (3,)), for instance another trajectory's. Returns dict: ``error`` (N,) m,
+    ``offset`` (N, 3) m (aligned estimate minus truth, world frame), ``along`` / ``across`` (N,) m
+    (the offset's components along / left of the true camera's viewing direction projected on the
+    horizontal, ``up`` being the world's vertical),
+    ``yaw`` (N,) rad (the aligned estimate's heading about ``up`` minus the truth's, in (-pi, pi]),
+    ``R``, ``t`` the alignment used."""
+    est, gt = np.asarray(est_viewmats, np.float64), np.asarray(gt_viewmats, np.float64)
+    pe, pg = camera_centres(est), camera_centres(gt)
+    if pe.shape != pg.shape:
+        raise ValueError(f"estimated and ground-truth trajectories differ in length: {len(pe)} vs {len(pg)}")
+    ok = np.all(np.isfinite(pe), 1) & np.all(np.isfinite(pg), 1)  # the others come out NaN
+    if alignment is None:
+        if not ok.any():
+            raise ValueError("no frame has a finite pose in both trajectories")
+        R, t, _ = umeyama_alignment(pe[ok], pg[ok])
+    else:
+        R, t = np.asarray(alignment[0], np.float64), np.asarray(alignment[1], np.float64)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    off = pe @ R.T + t - pg
+
+    def forward(c2w_rot):  # the viewing direction (camera +z) projected on the horizontal plane
+        f = c2w_rot[:, :, 2] - np.outer(c2w_rot[:, :, 2] @ up, up)
+        return f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
+
+    fg = forward(np.transpose(gt[:, :3, :3], (0, 2, 1)))
+    fe = forward(R @ np.transpose(est[:, :3, :3], (0, 2, 1)))
+    left = np.cross(up, fg)
+    yaw = np.arctan2(np.cross(fg, fe) @ up, np.einsum("ni,ni->n", fg, fe))
+    return {"error": np.linalg.norm(off, axis=1), "offset": off, "along": np.einsum("ni,ni->n", off, fg),
+            "across": np.einsum("ni,ni->n", off, left), "yaw": yaw, "R": R, "t": t}
+
+
 def rotation_to_quat(R: np.ndarray) -> np.ndarray:
     """Quaternion (x, y, z, w), w >= 0, of a rotation matrix (Shepperd's method)."""
     R = np.asarray(R, np.float64)
