@@ -28,10 +28,17 @@ FIXTURE = os.path.join(os.path.dirname(__file__), "data", "vcicn_val_fixture.npz
 
 
 @pytest.fixture(scope="module")
-def tiny_weights(tmp_path_factory) -> str:
+def tiny_params():
+    """The untrained TINY model's parameters (seed 0), built once for the module: every
+    ``init_params`` call jits a fresh ``model.init`` and compiles it again (about 10 s on 2 cores)."""
+    return init_params(TINY)
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory, tiny_params) -> str:
     """A weights file of the untrained TINY model, built once for the inpainter tests."""
     p = str(tmp_path_factory.mktemp("vcicn") / "w.npz")
-    save_weights(p, init_params(TINY), TINY)
+    save_weights(p, tiny_params, TINY)
     return p
 
 
@@ -49,25 +56,25 @@ def _apply(cfg, params, x, cams=None, valid=None):
     return np.asarray(_APPLY[cfg](params, x, cams, valid))
 
 
-def test_model_shapes_and_range():
-    params = init_params(TINY)
+def test_model_shapes_and_range(tiny_params):
     x = np.random.default_rng(0).random((2, 3, 16, 16, 4)).astype(np.float32)
-    out = _apply(TINY, params, x)
+    out = _apply(TINY, tiny_params, x)
     assert out.shape == (2, 3, 16, 16, 3)
     assert np.all((out >= 0) & (out <= 1))
 
 
-def test_views_exchange_information_and_padding_is_ignored():
-    params = init_params(TINY, seed=1)
+def test_views_exchange_information_and_padding_is_ignored(tiny_params):
+    params = tiny_params
     rng = np.random.default_rng(1)
-    x = rng.random((1, 3, 16, 16, 4)).astype(np.float32)
+    # batch 2 (only sample 0 is checked) so that the apply compiled for the shapes test is reused
+    x = rng.random((2, 3, 16, 16, 4)).astype(np.float32)
     base = _apply(TINY, params, x)
     y = x.copy()
     y[0, 2] = rng.random((16, 16, 4))  # change view 2 only
     changed = _apply(TINY, params, y)
     assert np.abs(changed[0, 0] - base[0, 0]).max() > 1e-4  # view 0 sees view 2 through attention
     # a padded (invalid) view must not influence the valid ones
-    valid = np.array([[True, True, False]])
+    valid = np.array([[True, True, False]] * 2)
     a = _apply(TINY, params, x, valid=valid)
     b = _apply(TINY, params, y, valid=valid)
     np.testing.assert_allclose(a[0, :2], b[0, :2], atol=1e-5)
@@ -206,10 +213,10 @@ def test_gradient_loss_term():
     assert jax.numpy.isfinite(loss_fn(blur, x, hole, gt, valid, 0.5))
 
 
-def test_weights_round_trip_and_corruption(tmp_path):
+def test_weights_round_trip_and_corruption(tmp_path, tiny_params):
     import jax
 
-    params = init_params(TINY, seed=3)
+    params = tiny_params
     p = str(tmp_path / "w.npz")
     digest = save_weights(p, params, TINY, meta={"step": 7}, provenance={"note": "test"})
     back, cfg, meta = load_weights(p)
