@@ -71,7 +71,8 @@ def ate(est_viewmats, gt_viewmats, align: bool = True) -> dict:
             "max": float(err.max()), "n": int(ok.sum()), "errors": err, "R": R, "t": t}
 
 
-def frame_errors(est_viewmats, gt_viewmats, up=(0.0, 0.0, 1.0), alignment=None) -> dict:
+def frame_errors(est_viewmats: np.ndarray, gt_viewmats: np.ndarray, up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+                 alignment: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Per-frame errors of estimated against ground-truth poses (both (N, 4, 4) world-to-camera,
     same frames; a frame non-finite on either side gets NaN) after a rigid alignment of the
     estimate: :func:`ate`'s (so the RMS of ``error`` is the ATE) or the given ``alignment``
